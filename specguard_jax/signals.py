@@ -18,16 +18,21 @@ MONITORED_SIGNALS = {
   "fence_h": "signed horizontal margin to the nearest fence (> 0 allowed side), m",
   "fence_v": "signed vertical margin to the nearest fence (> 0 allowed side: above a keep-out prism's top or below "
              "the ceiling), m",
-  "loiter_deviation": "horizontal distance from the loiter centre minus nothing (0 outside the loiter phase), m",
+  "loiter_deviation": "horizontal distance from the loiter centre (0 outside the loiter phase), m",
   # --- speeds ---
   "speed_xy": "horizontal ground speed, m/s",
   "speed_z": "vertical speed, up positive, m/s",
   "descent_speed": "max(0, -speed_z): sink rate, m/s",
-  # --- mission phase indicators (0.0 or 1.0) ---
-  "in_takeoff": "1 while climbing to the take-off altitude",
-  "in_cruise": "1 while flying/driving between waypoints",
-  "in_loiter": "1 while loitering",
-  "in_landing": "1 while descending to land",
+  # --- mission phase indicators (0.0 or 1.0; at most one is 1 at a time; all 0 before take-off and after landing) ---
+  # Windows follow PX4's ramps so the speed specs have a meaningful window [t_i, t_j]:
+  "in_takeoff": "1 in the take-off climb window: take-off phase, 1 m above ground up to 2 m below the take-off "
+                "altitude (S10 applies here)",
+  "in_cruise": "1 while flying/driving between waypoints, excluding turn zones within 2 acceptance radii of an "
+               "intermediate waypoint (where the vehicle slows for the corner) (S7 applies here)",
+  "in_turn": "1 in the turn zone around an intermediate waypoint (cruise phase, near the corner)",
+  "in_loiter": "1 while loitering around a waypoint (S11 applies here)",
+  "in_descent": "1 while descending from the last waypoint towards the landing zone, above 5 m (MPC_LAND_ALT2)",
+  "in_landing": "1 in the final landing window: descending below 5 m until touchdown (S9 applies here)",
   "time": "mission time since reset, s",
 }
 
