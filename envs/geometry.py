@@ -1,0 +1,152 @@
+"""Exact analytic distance queries for obstacles, geofences and mission paths (pure JAX, jittable, vmappable).
+
+All functions take ONE query point (world ENU frame, metres) and return a scalar; vmap them for batches. Shapes
+stand on the ground plane z = 0 and are convex, so every signed distance here is a convex function of the point
+(used by `min_dist_segment_sdf`).
+
+Shape encodings (shared with `envs.worlds`):
+  cylinder [4] = (x, y, radius, height): vertical cylinder from z = 0 to z = height.
+  box      [6] = (cx, cy, half_x, half_y, yaw, height): rectangle footprint rotated by yaw (rad, CCW from +x),
+                 extruded from z = 0 to z = height.
+  rect     [4] = (xmin, xmax, ymin, ymax): axis-aligned rectangle in the xy plane.
+Signed distances are negative inside the shape, positive outside, and exact (Euclidean), not bounds.
+Norms use a double-`where` so gradients are finite everywhere (also at the surface / on a segment).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+FAR = 1e3
+"""Distance returned for masked-out (absent) entries, m."""
+
+
+def safe_norm(v: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
+  """Euclidean norm along `axis`, exact, with a finite (zero) gradient at v = 0."""
+  sq = jnp.sum(v * v, axis=axis)
+  pos = sq > 0.0
+  return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def closest_point_segment(p: jnp.ndarray, a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+  """Closest point to p [3] on the segment a [3] -> b [3] (degenerate a == b allowed). Returns [3]."""
+  ab = b - a
+  den = jnp.dot(ab, ab)
+  t = jnp.where(den > 0.0, jnp.dot(p - a, ab) / jnp.where(den > 0.0, den, 1.0), 0.0)
+  t = jnp.clip(t, 0.0, 1.0)
+  return a + t * ab
+
+
+def dist_point_segment(p: jnp.ndarray, a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+  """Euclidean distance from p [3] (or [2]) to the segment a -> b, m. Returns []."""
+  return safe_norm(p - closest_point_segment(p, a, b))
+
+
+def sdf_cylinder(p: jnp.ndarray, cyl: jnp.ndarray) -> jnp.ndarray:
+  """Signed distance from p [3] to the vertical cylinder cyl [4] = (x, y, radius, height) standing on z = 0, m."""
+  d_r = safe_norm(p[:2] - cyl[:2]) - cyl[2]
+  half_h = 0.5 * cyl[3]
+  d_z = jnp.abs(p[2] - half_h) - half_h
+  q = jnp.stack([d_r, d_z])
+  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+
+
+def _box_local_xy(p_xy: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
+  """p_xy [2] expressed in the box frame (centre at the origin, axes along the box), [2]."""
+  c, s = jnp.cos(box[4]), jnp.sin(box[4])
+  d = p_xy - box[:2]
+  return jnp.stack([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+
+
+def sdf_box(p: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
+  """Signed distance from p [3] to the oriented prism box [6] = (cx, cy, half_x, half_y, yaw, height) on z = 0, m."""
+  loc = _box_local_xy(p[:2], box)
+  half_h = 0.5 * box[5]
+  q = jnp.stack([jnp.abs(loc[0]) - box[2], jnp.abs(loc[1]) - box[3], jnp.abs(p[2] - half_h) - half_h])
+  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+
+
+def sdf_box_xy(p_xy: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
+  """Signed horizontal distance from p_xy [2] to the footprint of box [6] (> 0 outside the footprint), m."""
+  loc = _box_local_xy(p_xy, box)
+  q = jnp.abs(loc) - box[2:4]
+  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+
+
+def rect_inside_margin(p_xy: jnp.ndarray, rect: jnp.ndarray) -> jnp.ndarray:
+  """Signed horizontal distance to the boundary of the axis-aligned rect [4] = (xmin, xmax, ymin, ymax).
+
+  > 0 inside (distance to the nearest edge), < 0 outside (minus the distance to the rectangle), m. Returns [].
+  """
+  centre = jnp.stack([0.5 * (rect[0] + rect[1]), 0.5 * (rect[2] + rect[3])])
+  half = jnp.stack([0.5 * (rect[1] - rect[0]), 0.5 * (rect[3] - rect[2])])
+  q = jnp.abs(p_xy - centre) - half
+  sdf = jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+  return -sdf
+
+
+def oriented_rect_inside_margin(p_xy: jnp.ndarray, centre: jnp.ndarray, half: jnp.ndarray,
+                                yaw: jnp.ndarray) -> jnp.ndarray:
+  """Signed horizontal distance to the boundary of an oriented rectangle (centre [2], half sizes [2], yaw []).
+
+  > 0 inside, < 0 outside, m. Returns [].
+  """
+  box = jnp.concatenate([centre, half, jnp.reshape(yaw, (1,)), jnp.ones((1,))])
+  return -sdf_box_xy(p_xy, box)
+
+
+def masked_min(values: jnp.ndarray, mask: jnp.ndarray, empty: float = FAR) -> jnp.ndarray:
+  """Minimum of values [N] over entries where mask [N] is true; `empty` (1e3) if none. Returns []."""
+  return jnp.min(jnp.where(mask, values, empty), initial=empty)
+
+
+def masked_argmin(values: jnp.ndarray, mask: jnp.ndarray, empty: float = FAR):
+  """(min, index) of values [N] over mask [N]; (empty, 0) if nothing is valid."""
+  v = jnp.where(mask, values, empty)
+  i = jnp.argmin(v)
+  return jnp.minimum(v[i], empty), i
+
+
+def sdf_cylinders(p: jnp.ndarray, cyls: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+  """Min signed distance from p [3] to the valid cylinders cyls [N, 4] (mask [N]); 1e3 if none, m."""
+  return masked_min(jax.vmap(sdf_cylinder, (None, 0))(p, cyls), mask)
+
+
+def sdf_boxes(p: jnp.ndarray, boxes: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+  """Min signed distance from p [3] to the valid prisms boxes [N, 6] (mask [N]); 1e3 if none, m."""
+  return masked_min(jax.vmap(sdf_box, (None, 0))(p, boxes), mask)
+
+
+def dist_point_polyline(p: jnp.ndarray, points: jnp.ndarray) -> jnp.ndarray:
+  """Distance from p [3] to the polyline through points [K, 3] (repeat the last point to pad), m. Returns []."""
+  d = jax.vmap(dist_point_segment, (None, 0, 0))(p, points[:-1], points[1:])
+  return jnp.min(d)
+
+
+_INV_PHI = 0.6180339887498949
+
+
+def min_sdf_on_segment(sdf, a: jnp.ndarray, b: jnp.ndarray, iters: int = 40) -> jnp.ndarray:
+  """Minimum over the segment a [3] -> b [3] of a CONVEX function sdf(p [3]) -> [] (golden-section search).
+
+  Signed distances of convex shapes are convex, so this is the exact segment-to-shape distance up to
+  |b - a| * 0.618**iters (40 iterations: < 1e-6 m for a 120 m leg). Returns [].
+  """
+  f = lambda t: sdf(a + t * (b - a))
+
+  def body(_, lohi):
+    lo, hi = lohi
+    m1 = hi - _INV_PHI * (hi - lo)
+    m2 = lo + _INV_PHI * (hi - lo)
+    left = f(m1) <= f(m2)
+    return jnp.where(left, lo, m1), jnp.where(left, m2, hi)
+
+  lo, hi = jax.lax.fori_loop(0, iters, body, (jnp.zeros(()), jnp.ones(())))
+  return jnp.minimum(jnp.minimum(f(0.5 * (lo + hi)), f(0.0)), f(1.0))
+
+
+def min_sdf_on_polyline(sdf, points: jnp.ndarray, iters: int = 40) -> jnp.ndarray:
+  """Minimum of a convex sdf(p [3]) over the polyline points [K, 3] (pad by repeating the last point). Returns []."""
+  d = jax.vmap(lambda a, b: min_sdf_on_segment(sdf, a, b, iters))(points[:-1], points[1:])
+  return jnp.min(d)

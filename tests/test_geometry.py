@@ -1,0 +1,110 @@
+"""Exactness of the analytic distance queries in envs.geometry on hand-made layouts."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs import geometry as g
+
+CYL = jnp.array([10.0, 5.0, 2.0, 8.0])  # x, y, radius, height
+BOX = jnp.array([0.0, 0.0, 4.0, 2.0, 0.0, 6.0])  # cx, cy, hx, hy, yaw, height
+
+
+@pytest.mark.parametrize("p, want", [
+  ((15.0, 5.0, 4.0), 3.0),            # beside, radial
+  ((10.0, 5.0, 11.0), 3.0),           # above the top face
+  ((10.0, 5.0, 4.0), -2.0),           # centre, inside: nearest is the side wall (r = 2 < 4 to caps)
+  ((10.0, 5.0, 7.5), -0.5),           # inside, near the top cap
+  ((15.0, 5.0, 12.0), 5.0),           # above-outside the rim: 3-4-5
+  ((10.0, 9.0, 0.0), 2.0),            # on the ground, beside
+  ((13.0, 9.0, 8.0), 3.0),            # at top height, radial 5 - 2
+])
+def test_cylinder(p, want):
+  assert float(g.sdf_cylinder(jnp.array(p), CYL)) == pytest.approx(want, abs=1e-5)
+
+
+@pytest.mark.parametrize("p, want", [
+  ((7.0, 0.0, 3.0), 3.0),             # beside +x face
+  ((0.0, -5.0, 3.0), 3.0),            # beside -y face
+  ((0.0, 0.0, 10.0), 4.0),            # above
+  ((7.0, 6.0, 3.0), 5.0),             # vertical edge corner: (3, 4)
+  ((7.0, 4.0, 10.0), math.sqrt(9 + 4 + 16)),  # vertex corner
+  ((0.0, 0.0, 3.0), -2.0),            # inside, nearest face is +-y (hy = 2)
+  ((3.5, 0.0, 3.0), -0.5),            # inside near +x face
+  ((0.0, 0.0, 5.9), -0.1),            # inside near the top
+])
+def test_box_axis_aligned(p, want):
+  assert float(g.sdf_box(jnp.array(p), BOX)) == pytest.approx(want, abs=1e-5)
+
+
+def test_box_rotated_matches_rotated_query():
+  yaw = 0.7
+  box = BOX.at[0].set(3.0).at[1].set(-2.0).at[4].set(yaw)
+  rng = np.random.default_rng(0)
+  c, s = math.cos(yaw), math.sin(yaw)
+  for _ in range(50):
+    q = rng.uniform(-10, 10, 3)  # point in the box frame
+    p = np.array([3.0 + c * q[0] - s * q[1], -2.0 + s * q[0] + c * q[1], q[2]])
+    want = float(g.sdf_box(jnp.array(q, dtype=jnp.float32), BOX))
+    assert float(g.sdf_box(jnp.array(p, dtype=jnp.float32), box)) == pytest.approx(want, abs=1e-4)
+  # footprint corner of a 45-degree rotated square: (hx, 0) rotated -> on the surface
+  sq = jnp.array([0.0, 0.0, 1.0, 1.0, math.pi / 4, 5.0])
+  assert float(g.sdf_box_xy(jnp.array([math.sqrt(2.0) + 1.0, 0.0]), sq)) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_segment():
+  a, b = jnp.array([0.0, 0.0, 0.0]), jnp.array([10.0, 0.0, 0.0])
+  assert float(g.dist_point_segment(jnp.array([5.0, 3.0, 4.0]), a, b)) == pytest.approx(5.0)
+  assert float(g.dist_point_segment(jnp.array([-3.0, 4.0, 0.0]), a, b)) == pytest.approx(5.0)
+  assert float(g.dist_point_segment(jnp.array([13.0, 0.0, 4.0]), a, b)) == pytest.approx(5.0)
+  assert float(g.dist_point_segment(jnp.array([1.0, 1.0, 1.0]), a, a)) == pytest.approx(math.sqrt(3.0))
+  # gradients are finite on the segment itself and for degenerate segments
+  gr = jax.grad(lambda p: g.dist_point_segment(p, a, b))(jnp.array([5.0, 0.0, 0.0]))
+  assert np.all(np.isfinite(gr))
+  gr = jax.grad(lambda p: g.dist_point_segment(p, a, a))(a)
+  assert np.all(np.isfinite(gr))
+
+
+def test_rect_margin():
+  rect = jnp.array([-10.0, 20.0, 0.0, 10.0])
+  assert float(g.rect_inside_margin(jnp.array([0.0, 5.0]), rect)) == pytest.approx(5.0)
+  assert float(g.rect_inside_margin(jnp.array([18.0, 5.0]), rect)) == pytest.approx(2.0)
+  assert float(g.rect_inside_margin(jnp.array([25.0, 5.0]), rect)) == pytest.approx(-5.0)
+  assert float(g.rect_inside_margin(jnp.array([23.0, 14.0]), rect)) == pytest.approx(-5.0)  # outside corner
+  assert float(g.rect_inside_margin(jnp.array([20.0, 10.0]), rect)) == pytest.approx(0.0)
+  # oriented rectangle: 2 x 1 half sizes, rotated 90 degrees
+  m = g.oriented_rect_inside_margin(jnp.array([0.0, 1.5]), jnp.zeros(2), jnp.array([2.0, 1.0]), jnp.array(math.pi / 2))
+  assert float(m) == pytest.approx(0.5, abs=1e-5)
+  m = g.oriented_rect_inside_margin(jnp.array([4.0, 0.0]), jnp.zeros(2), jnp.array([2.0, 1.0]), jnp.array(math.pi / 2))
+  assert float(m) == pytest.approx(-3.0, abs=1e-5)
+
+
+def test_masked_min_and_batches():
+  cyls = jnp.stack([CYL, CYL.at[0].set(100.0), jnp.zeros(4)])
+  mask = jnp.array([False, True, False])
+  p = jnp.array([15.0, 5.0, 4.0])
+  assert float(g.sdf_cylinders(p, cyls, mask)) == pytest.approx(83.0, abs=1e-4)
+  assert float(g.sdf_cylinders(p, cyls, jnp.zeros(3, bool))) == g.FAR
+  assert float(g.masked_min(jnp.zeros((0,)), jnp.zeros((0,), bool))) == g.FAR
+  ps = jnp.tile(p, (7, 1))
+  out = jax.jit(jax.vmap(g.sdf_boxes, (0, None, None)))(ps, jnp.stack([BOX]), jnp.array([True]))
+  assert out.shape == (7,)
+  assert float(out[0]) == pytest.approx(float(g.sdf_box(p, BOX)))
+
+
+def test_min_sdf_on_segment_matches_dense_sampling():
+  rng = np.random.default_rng(1)
+  for _ in range(20):
+    a = jnp.array(rng.uniform(-30, 30, 3), dtype=jnp.float32)
+    b = jnp.array(rng.uniform(-30, 30, 3), dtype=jnp.float32)
+    box = jnp.array([*rng.uniform(-10, 10, 2), *rng.uniform(1, 8, 2), rng.uniform(-3, 3), rng.uniform(2, 20)],
+                    dtype=jnp.float32)
+    f = lambda p: g.sdf_box(p, box)
+    got = float(g.min_sdf_on_segment(f, a, b))
+    ts = jnp.linspace(0.0, 1.0, 20001)
+    dense = float(jnp.min(jax.vmap(lambda t: f(a + t * (b - a)))(ts)))
+    assert got <= dense + 1e-4
+    assert got >= dense - 5e-3  # dense grid spacing bound
