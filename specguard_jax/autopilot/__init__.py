@@ -1,0 +1,1 @@
+"""Autopilots: a PX4-style multicopter cascade, an ArduRover-style steering/speed controller, and the mission navigator."""
