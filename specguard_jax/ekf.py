@@ -1,0 +1,424 @@
+"""PX4-EKF2-style error-state EKF (15 states) for the autopilot's state estimate.
+
+Nominal state: pos[3] (ENU, m), vel[3] (ENU, m/s), quat[4] ((w, x, y, z), body -> world), gyro_bias[3] (rad/s),
+accel_bias[3] (m/s^2). Error state dx[15] = (dp, dv, dtheta, dbg, dba) with covariance P[15, 15]; the attitude error
+is a small rotation in the world frame: R_true = Exp(dtheta) R_est.
+
+Kept from EKF2:
+  * strapdown prediction with the IMU as control input (gyro/accel minus estimated biases), process noise from the
+    IMU noise (EKF2_GYR_NOISE, EKF2_ACC_NOISE) and bias random walks (EKF2_GYR_B_NOISE, EKF2_ACC_B_NOISE);
+  * sequential scalar fusion of each fresh measurement, Joseph-form covariance update;
+  * per-channel innovation-consistency gates: test ratio = innov^2 / (gate^2 * (H P H' + R)), rejected when > 1;
+    a vector observation (GPS horizontal position, GPS velocity, optical flow) is accepted or rejected as a whole, as in
+    EKF2 (gates: GPS pos 5, GPS vel 5, baro 5, mag heading 3, flow 3, odometry 5);
+  * reset of horizontal position (velocity) to GPS when GPS position (velocity) fusion has been rejected for longer
+    than `reset_timeout` (~7 s, EKF2's reset_timeout_max), with the reset states' covariance set to the GPS noise
+    and their cross-covariances cleared. Same for height -> barometer (the height reference). A slow GPS ramp keeps
+    its innovations inside the gate and drags the estimate; a large jump is rejected until the timeout reset;
+  * the last test ratios and accept flags are stored per channel (see CHANNELS) for detectors.
+Simplified vs EKF2:
+  * 15 states: no magnetic-field/earth-field states (the magnetometer is a heading, fused like EKF2's yaw fusion), no
+    wind, no terrain state (optical flow uses height above flat ground = estimated z), no baro bias state;
+  * no delayed-time horizon / output predictor: measurements are fused at the tick they arrive (no sensor latency);
+  * GPS height and barometer are both fused directly (EKF2 fuses only the chosen height reference);
+  * no GPS quality checks, no in-air/on-ground logic, no bias-learning inhibition;
+  * rover: wheel-odometry forward speed and a non-holonomic pseudo-measurement (body lateral and vertical velocity
+    = 0) in the style of ArduPilot's EKF3 body-odometry fusion; neither exists in EKF2.
+Robustness: IMU inputs saturate at the sensor range, biases are clamped, P is symmetrised and its diagonal clamped
+(scaling rows/columns so P stays PSD), the quaternion is renormalised; no NaN for finite inputs.
+Everything is per vehicle, jittable and vmappable; dt is passed in explicitly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from specguard_jax.sensors import (ACCEL_RANGE, GRAVITY, GYRO_RANGE, euler_to_quat, quat_to_euler,
+                                   quat_to_rotmat, wrap_angle)
+from specguard_jax.types import SensorReadings
+
+# Innovation channels recorded in EKFState (order is part of the API).
+CHANNELS = ("gps_pos_x", "gps_pos_y", "gps_pos_z", "gps_vel_x", "gps_vel_y", "gps_vel_z", "baro", "mag",
+            "flow_x", "flow_y", "odom")
+CH = {name: i for i, name in enumerate(CHANNELS)}
+N_CHANNELS = len(CHANNELS)
+N_ERR = 15
+# slices into the error state
+POS, VEL, ATT, GBIAS, ABIAS = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+
+
+@dataclasses.dataclass(frozen=True)
+class EKFConfig:
+  """Process/measurement noise (σ), gates (in σ), reset timeout and initial uncertainty. Units SI, angles rad."""
+
+  # process noise (PX4 EKF2 defaults)
+  gyro_noise: float = 0.015  # rad/s            (EKF2_GYR_NOISE)
+  accel_noise: float = 0.35  # m/s^2            (EKF2_ACC_NOISE)
+  gyro_bias_noise: float = 1e-3  # rad/s^2      (EKF2_GYR_B_NOISE)
+  accel_bias_noise: float = 3e-3  # m/s^3       (EKF2_ACC_B_NOISE)
+  gyro_bias_limit: float = 0.4  # rad/s, |bias| clamp
+  accel_bias_limit: float = 0.4  # m/s^2, |bias| clamp (EKF2_ABL_LIM)
+  # measurement noise
+  gps_pos_noise_h: float = 0.5  # m             (EKF2_GPS_P_NOISE)
+  gps_pos_noise_v: float = 1.0  # m
+  gps_vel_noise: float = 0.3  # m/s             (EKF2_GPS_V_NOISE)
+  baro_noise: float = 0.4  # m
+  mag_heading_noise: float = 0.05  # rad
+  flow_noise: float = 0.1  # rad/s
+  odom_noise: float = 0.1  # m/s
+  nhc_noise: float = 0.05  # m/s, body lateral/vertical velocity pseudo-measurement
+  # gates (σ)
+  gps_pos_gate: float = 5.0  # EKF2_GPS_P_GATE
+  gps_vel_gate: float = 5.0  # EKF2_GPS_V_GATE
+  baro_gate: float = 5.0  # EKF2_BARO_GATE
+  mag_gate: float = 3.0  # EKF2_MAG_GATE
+  flow_gate: float = 3.0  # EKF2_OF_GATE
+  odom_gate: float = 5.0
+  nhc_gate: float = 5.0
+  reset_timeout: float = 7.0  # s of continuous rejection before resetting to the measurement
+  # which aiding sources are fused
+  fuse_gps_height: bool = True
+  use_flow: bool = True
+  use_odom: bool = False
+  use_nhc: bool = False
+  flow_min_height: float = 0.3  # m; no flow fusion below
+  # initial uncertainty (σ)
+  init_pos_sigma_h: float = 0.5
+  init_pos_sigma_v: float = 0.5
+  init_vel_sigma: float = 0.5
+  init_tilt_sigma: float = 0.1  # rad
+  init_yaw_sigma: float = 0.1  # rad
+  init_gyro_bias_sigma: float = 0.01  # rad/s
+  init_accel_bias_sigma: float = 0.2  # m/s^2   (EKF2_ABIAS_INIT)
+
+  @classmethod
+  def drone(cls, **overrides) -> "EKFConfig":
+    """Multicopter: GPS + baro + mag + optical flow."""
+    return cls(**overrides)
+
+  @classmethod
+  def rover(cls, **overrides) -> "EKFConfig":
+    """Ground rover: GPS + baro + mag + wheel odometry + non-holonomic constraint; no optical flow."""
+    kw = dict(use_flow=False, use_odom=True, use_nhc=True)
+    kw.update(overrides)
+    return cls(**kw)
+
+
+@struct.dataclass
+class EKFState:
+  """Filter state of one vehicle.
+
+  pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: [15, 15] error-state covariance.
+  gps_pos_age, gps_vel_age, hgt_age: [] s since the last accepted horizontal GPS position / GPS velocity /
+    height (GPS height or baro) fusion.
+  innov: [11] last innovation (measurement - prediction) per channel (CHANNELS), held between samples.
+  test_ratio: [11] last innov^2 / (gate^2 * innovation variance); > 1 means rejected. Held between samples.
+  accepted: [11] 1.0 if the channel's last sample was fused, 0.0 if it was rejected (held).
+  fresh: [11] 1.0 on the tick the channel had a sample.
+  reset: [] 1.0 on a tick where a timeout reset happened (horizontal position, velocity or height).
+  n_resets: [] number of timeout resets since init.  time: [] s since init.
+  """
+
+  pos: jnp.ndarray
+  vel: jnp.ndarray
+  quat: jnp.ndarray
+  gyro_bias: jnp.ndarray
+  accel_bias: jnp.ndarray
+  P: jnp.ndarray
+  gps_pos_age: jnp.ndarray
+  gps_vel_age: jnp.ndarray
+  hgt_age: jnp.ndarray
+  innov: jnp.ndarray
+  test_ratio: jnp.ndarray
+  accepted: jnp.ndarray
+  fresh: jnp.ndarray
+  reset: jnp.ndarray
+  n_resets: jnp.ndarray
+  time: jnp.ndarray
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# math helpers
+
+
+def _skew(v):
+  return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _quat_mul(a, b):
+  aw, ax, ay, az = a[0], a[1], a[2], a[3]
+  bw, bx, by, bz = b[0], b[1], b[2], b[3]
+  return jnp.stack([
+    aw * bw - ax * bx - ay * by - az * bz,
+    aw * bx + ax * bw + ay * bz - az * by,
+    aw * by - ax * bz + ay * bw + az * bx,
+    aw * bz + ax * by - ay * bx + az * bw,
+  ])
+
+
+def _rotvec_to_quat(v):
+  """[3] rotation vector (rad) -> [4] unit quaternion; smooth at 0."""
+  a2 = jnp.sum(v * v)
+  small = a2 < 1e-8
+  a = jnp.sqrt(jnp.where(small, 1.0, a2))
+  s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
+  c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
+  return jnp.concatenate([c[None], s * v])
+
+
+def _normalize_quat(q):
+  n = jnp.linalg.norm(q)
+  ok = jnp.isfinite(n) & (n > 1e-6)
+  return jnp.where(ok, q / jnp.where(ok, n, 1.0), jnp.array([1.0, 0.0, 0.0, 0.0]))
+
+
+def _tree_where(c, a, b):
+  return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# covariance hygiene
+
+_VAR_MIN = jnp.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3)
+_VAR_MAX = jnp.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3)
+
+
+def _condition(P):
+  """Symmetrise, replace non-finite entries, clamp the diagonal while keeping P PSD."""
+  P = 0.5 * (P + P.T)
+  P = jnp.where(jnp.isfinite(P), P, 0.0)
+  d = jnp.diag(P)
+  # upper clamp: scale row/column i by sqrt(max/var) (a congruence, so PSD is kept)
+  s = jnp.sqrt(jnp.minimum(1.0, _VAR_MAX / jnp.maximum(d, 1e-30)))
+  P = P * s[:, None] * s[None, :]
+  # lower clamp: adding a nonnegative diagonal keeps PSD
+  d = jnp.diag(P)
+  return P + jnp.diag(jnp.maximum(_VAR_MIN - d, 0.0))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def ekf_init(cfg: EKFConfig, readings: SensorReadings) -> EKFState:
+  """Initial state from one set of readings: horizontal position and velocity from GPS, height from the barometer,
+  roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases."""
+  f = readings.accel
+  roll = jnp.arctan2(f[1], f[2])
+  pitch = jnp.arctan2(-f[0], jnp.sqrt(f[1] ** 2 + f[2] ** 2))
+  quat = _normalize_quat(euler_to_quat(jnp.stack([roll, pitch, readings.mag_yaw])))
+  pos = jnp.stack([readings.gps_pos[0], readings.gps_pos[1], readings.baro_alt])
+  sig = jnp.array([cfg.init_pos_sigma_h] * 2 + [cfg.init_pos_sigma_v] + [cfg.init_vel_sigma] * 3
+                  + [cfg.init_tilt_sigma] * 2 + [cfg.init_yaw_sigma] + [cfg.init_gyro_bias_sigma] * 3
+                  + [cfg.init_accel_bias_sigma] * 3, jnp.float32)
+  z = jnp.zeros((), jnp.float32)
+  zc = jnp.zeros((N_CHANNELS,), jnp.float32)
+  return EKFState(pos=pos, vel=readings.gps_vel, quat=quat, gyro_bias=jnp.zeros(3), accel_bias=jnp.zeros(3),
+                  P=jnp.diag(sig ** 2), gps_pos_age=z, gps_vel_age=z, hgt_age=z, innov=zc, test_ratio=zc,
+                  accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc, reset=z, n_resets=z, time=z)
+
+
+def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
+  """Strapdown propagation of the nominal state and P over dt."""
+  w = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE) - s.gyro_bias
+  a = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE) - s.accel_bias
+  r = quat_to_rotmat(s.quat)
+  acc_w = r @ a + jnp.array([0.0, 0.0, -GRAVITY])
+  pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
+  vel = s.vel + acc_w * dt
+  quat = _normalize_quat(_quat_mul(s.quat, _rotvec_to_quat(w * dt)))
+
+  eye3 = jnp.eye(3)
+  F = jnp.eye(N_ERR)
+  F = F.at[POS, VEL].set(eye3 * dt)
+  F = F.at[VEL, ATT].set(-_skew(r @ a) * dt)
+  F = F.at[VEL, ABIAS].set(-r * dt)
+  F = F.at[ATT, GBIAS].set(-r * dt)
+  q = jnp.concatenate([
+    jnp.zeros(3),
+    jnp.full(3, (cfg.accel_noise * dt) ** 2),
+    jnp.full(3, (cfg.gyro_noise * dt) ** 2),
+    jnp.full(3, (cfg.gyro_bias_noise * dt) ** 2),
+    jnp.full(3, (cfg.accel_bias_noise * dt) ** 2),
+  ])
+  P = F @ s.P @ F.T + jnp.diag(q)
+  return s.replace(pos=pos, vel=vel, quat=quat, P=_condition(P))
+
+
+def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
+  """Adds an error-state correction dx[15] to the nominal state."""
+  dq = _rotvec_to_quat(dx[ATT])
+  return s.replace(
+    pos=s.pos + dx[POS], vel=s.vel + dx[VEL], quat=_normalize_quat(_quat_mul(dq, s.quat)),
+    gyro_bias=jnp.clip(s.gyro_bias + dx[GBIAS], -cfg.gyro_bias_limit, cfg.gyro_bias_limit),
+    accel_bias=jnp.clip(s.accel_bias + dx[ABIAS], -cfg.accel_bias_limit, cfg.accel_bias_limit))
+
+
+def _predict_meas(s: EKFState, fn):
+  """Predicted measurement fn(pos, vel, R) -> [m] and its Jacobian H [m, 15] w.r.t. the error state."""
+  r = quat_to_rotmat(s.quat)
+
+  def h(dx):
+    rr = (jnp.eye(3) + _skew(dx[ATT])) @ r
+    return fn(s.pos + dx[POS], s.vel + dx[VEL], rr)
+
+  dx0 = jnp.zeros(N_ERR)
+  return h(dx0), jax.jacfwd(h)(dx0)
+
+
+def _fuse_group(cfg: EKFConfig, s: EKFState, fn, z, noise, gate, enable, angle=False):
+  """Gated sequential scalar fusion of a vector measurement z[m] (accepted or rejected as a whole).
+
+  Returns (state, innov[m], test_ratio[m], accepted []) ; innovations and ratios use the pre-fusion state.
+  """
+  pred, H = _predict_meas(s, fn)
+  innov = z - pred
+  if angle:
+    innov = wrap_angle(innov)
+  R = noise ** 2
+  S = jnp.einsum("mi,ij,mj->m", H, s.P, H) + R
+  ratio = innov ** 2 / (gate ** 2 * S)
+  ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
+  accept = enable & jnp.all(ratio <= 1.0)
+
+  new = s
+  for i in range(z.shape[0]):
+    pi, Hi = _predict_meas(new, lambda p, v, r: fn(p, v, r)[i:i + 1])
+    Hi = Hi[0]
+    yi = z[i] - pi[0]
+    if angle:
+      yi = wrap_angle(yi)
+    Ri = R[i]
+    PHt = new.P @ Hi
+    Si = Hi @ PHt + Ri
+    K = PHt / Si
+    IKH = jnp.eye(N_ERR) - jnp.outer(K, Hi)
+    P = IKH @ new.P @ IKH.T + Ri * jnp.outer(K, K)
+    new = _inject(cfg, new.replace(P=_condition(P)), K * yi)
+  new = _tree_where(accept, new, s)
+  return new, innov, ratio, accept
+
+
+def _record(s_rec: dict, idx, innov, ratio, accept, fresh):
+  """Stores channel results (held when the channel is not fresh)."""
+  idx = jnp.asarray(idx)
+  for key, val in (("innov", innov), ("test_ratio", ratio), ("accepted", jnp.broadcast_to(accept, innov.shape))):
+    s_rec[key] = s_rec[key].at[idx].set(jnp.where(fresh, val.astype(jnp.float32), s_rec[key][idx]))
+  s_rec["fresh"] = s_rec["fresh"].at[idx].set(jnp.broadcast_to(fresh, innov.shape).astype(jnp.float32))
+
+
+def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> EKFState:
+  """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets."""
+  s = _predict(cfg, state, readings.gyro, readings.accel, dt)
+  rec = dict(innov=state.innov, test_ratio=state.test_ratio, accepted=state.accepted,
+             fresh=jnp.zeros((N_CHANNELS,), jnp.float32))
+  gps = readings.gps_fresh > 0.5
+
+  # GPS velocity (3-D, one gate decision)
+  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: v, readings.gps_vel, jnp.full(3, cfg.gps_vel_noise),
+                             cfg.gps_vel_gate, gps)
+  _record(rec, [3, 4, 5], y, tr, ok, gps)
+  vel_ok = ok
+  # GPS horizontal position
+  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[:2], readings.gps_pos[:2], jnp.full(2, cfg.gps_pos_noise_h),
+                             cfg.gps_pos_gate, gps)
+  _record(rec, [0, 1], y, tr, ok, gps)
+  hpos_ok = ok
+  # GPS height
+  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[2:3], readings.gps_pos[2:3], jnp.full(1, cfg.gps_pos_noise_v),
+                             cfg.gps_pos_gate, gps & cfg.fuse_gps_height)
+  _record(rec, [2], y, tr, ok, gps)
+  hgt_ok = ok
+  # barometer
+  baro = readings.baro_fresh > 0.5
+  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[2:3], readings.baro_alt[None], jnp.full(1, cfg.baro_noise),
+                             cfg.baro_gate, baro)
+  _record(rec, [6], y, tr, ok, baro)
+  hgt_ok = hgt_ok | ok
+  # magnetometer heading
+  mag = readings.mag_fresh > 0.5
+  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: jnp.arctan2(r[1, 0], r[0, 0])[None], readings.mag_yaw[None],
+                             jnp.full(1, cfg.mag_heading_noise), cfg.mag_gate, mag, angle=True)
+  _record(rec, [7], y, tr, ok, mag)
+  # optical flow: body horizontal velocity / height above flat ground
+  if cfg.use_flow:
+    flow = (readings.flow_fresh > 0.5) & (s.pos[2] >= cfg.flow_min_height)
+    hmin = cfg.flow_min_height
+    s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[:2] / jnp.maximum(p[2], hmin), readings.flow,
+                               jnp.full(2, cfg.flow_noise), cfg.flow_gate, flow)
+    _record(rec, [8, 9], y, tr, ok, flow)
+  # wheel odometry and non-holonomic constraint (rover)
+  if cfg.use_odom:
+    odom = readings.odom_fresh > 0.5
+    s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[0:1], readings.odom_speed[None],
+                               jnp.full(1, cfg.odom_noise), cfg.odom_gate, odom)
+    _record(rec, [10], y, tr, ok, odom)
+    if cfg.use_nhc:
+      s, *_ = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[1:3], jnp.zeros(2), jnp.full(2, cfg.nhc_noise),
+                          cfg.nhc_gate, odom)
+
+  # timeout bookkeeping and resets (EKF2: reset to the measurement after reset_timeout of rejected fusion)
+  gps_pos_age = jnp.where(hpos_ok, 0.0, state.gps_pos_age + dt)
+  gps_vel_age = jnp.where(vel_ok, 0.0, state.gps_vel_age + dt)
+  hgt_age = jnp.where(hgt_ok, 0.0, state.hgt_age + dt)
+  reset_pos = gps & (gps_pos_age > cfg.reset_timeout)
+  reset_vel = gps & (gps_vel_age > cfg.reset_timeout)
+  reset_hgt = baro & (hgt_age > cfg.reset_timeout)
+  P = s.P
+  pos, vel = s.pos, s.vel
+
+  def reset_block(P, idx, var, do):
+    idx = jnp.asarray(idx)
+    mask = jnp.zeros(N_ERR, bool).at[idx].set(True) & do
+    P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
+    return P.at[idx, idx].set(jnp.where(do, var, P[idx, idx]))
+
+  pos = jnp.where(reset_pos, pos.at[:2].set(readings.gps_pos[:2]), pos)
+  P = reset_block(P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
+  vel = jnp.where(reset_vel, readings.gps_vel, vel)
+  P = reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
+  pos = jnp.where(reset_hgt, pos.at[2].set(readings.baro_alt), pos)
+  P = reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
+  any_reset = reset_pos | reset_vel | reset_hgt
+
+  pos = jnp.where(jnp.isfinite(pos), pos, 0.0)
+  vel = jnp.where(jnp.isfinite(vel), vel, 0.0)
+  return s.replace(
+    pos=pos, vel=vel, P=_condition(P),
+    gps_pos_age=jnp.where(reset_pos, 0.0, gps_pos_age),
+    gps_vel_age=jnp.where(reset_vel, 0.0, gps_vel_age),
+    hgt_age=jnp.where(reset_hgt, 0.0, hgt_age),
+    innov=rec["innov"], test_ratio=rec["test_ratio"], accepted=rec["accepted"], fresh=rec["fresh"],
+    reset=any_reset.astype(jnp.float32), n_resets=state.n_resets + any_reset, time=state.time + dt)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# accessors
+
+
+def ekf_euler(state: EKFState):
+  """[3] estimated (roll, pitch, yaw), rad (ZYX)."""
+  return quat_to_euler(state.quat)
+
+
+def ekf_body_rates(state: EKFState, readings: SensorReadings):
+  """[3] body angular rate (rad/s): gyro minus the estimated bias."""
+  return jnp.clip(readings.gyro, -GYRO_RANGE, GYRO_RANGE) - state.gyro_bias
+
+
+def ekf_rotmat(state: EKFState):
+  """[3, 3] estimated rotation body -> world."""
+  return quat_to_rotmat(state.quat)
+
+
+def ekf_body_velocity(state: EKFState):
+  """[3] estimated velocity in the body frame (FLU), m/s."""
+  return quat_to_rotmat(state.quat).T @ state.vel
+
+
+def ekf_std(state: EKFState):
+  """[15] 1-σ of the error state (pos m, vel m/s, attitude rad, gyro bias rad/s, accel bias m/s^2)."""
+  return jnp.sqrt(jnp.maximum(jnp.diag(state.P), 0.0))
