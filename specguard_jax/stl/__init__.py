@@ -1,0 +1,15 @@
+"""Signal Temporal Logic engine: parser, offline robustness (rtamt-equal) and a fixed-state online monitor.
+
+  parse(text, params=None, signals=None) -> Formula
+  robustness(formula_or_text, signals: {name: [..., T]}, dt=None, length=None) -> [..., T]
+  OnlineMonitor(formula, dt=None) ; monitor_init(formula, batch_shape, dt=None) ; monitor_update(formula, state, x_t)
+Intervals without a unit are control steps; with 's'/'ms' they are seconds, converted with an explicit dt.
+"""
+
+from specguard_jax.stl.ast import (Always, And, Eventually, Formula, Implies, Interval, Not, Or, Predicate, Until,
+                                   horizon, signals_of, to_steps)
+from specguard_jax.stl.errors import (IntervalError, STLError, STLSyntaxError, UnknownSignalError,
+                                      UnsupportedOnlineError)
+from specguard_jax.stl.offline import robustness
+from specguard_jax.stl.online import MonitorState, OnlineMonitor, monitor_init, monitor_update
+from specguard_jax.stl.parser import parse

@@ -1,0 +1,204 @@
+"""STL formula abstract syntax tree: immutable, hashable nodes (usable as static jit arguments).
+
+Time intervals are kept in the unit they were written in (`Interval.unit` is "steps" or "s"); `to_steps(formula, dt)`
+converts every interval to control steps with an explicit step length `dt` (seconds). Only step intervals are evaluated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Optional, Tuple, Union
+
+from specguard_jax.stl.errors import IntervalError, UnknownSignalError
+
+
+@dataclasses.dataclass(frozen=True)
+class Interval:
+  """Closed interval [lo, hi] of a temporal operator; unit "steps" (integers) or "s" (seconds)."""
+
+  lo: float
+  hi: float
+  unit: str = "steps"
+
+  def __str__(self) -> str:
+    if self.unit == "steps":
+      return f"[{int(self.lo)},{int(self.hi)}]"
+    return f"[{_num(self.lo)}s,{_num(self.hi)}s]"
+
+
+@dataclasses.dataclass(frozen=True)
+class Predicate:
+  """Affine predicate with robustness  sum_i coef_i * signal_i + offset  (>= 0 means satisfied).
+
+  `x > c` and `x >= c` both give x - c; `x < c` and `x <= c` both give c - x (rtamt's discrete-time semantics).
+  `text` is the source form, kept for printing.
+  """
+
+  terms: Tuple[Tuple[str, float], ...]
+  offset: float
+  text: str = ""
+
+  def __str__(self) -> str:
+    if self.text:
+      return f"({self.text})"
+    lhs = " + ".join(f"({_num(c)}*{n})" for n, c in self.terms) or "0"
+    return f"({lhs} > {_num(-self.offset)})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Not:
+  arg: "Formula"
+
+  def __str__(self) -> str:
+    return f"(not {self.arg})"
+
+
+@dataclasses.dataclass(frozen=True)
+class And:
+  left: "Formula"
+  right: "Formula"
+
+  def __str__(self) -> str:
+    return f"({self.left} and {self.right})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Or:
+  left: "Formula"
+  right: "Formula"
+
+  def __str__(self) -> str:
+    return f"({self.left} or {self.right})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Implies:
+  left: "Formula"
+  right: "Formula"
+
+  def __str__(self) -> str:
+    return f"({self.left} -> {self.right})"
+
+
+@dataclasses.dataclass(frozen=True)
+class Always:
+  """G_I(arg); `interval=None` is the unbounded always (to the end of the trace)."""
+
+  arg: "Formula"
+  interval: Optional[Interval] = None
+
+  def __str__(self) -> str:
+    return f"(always{self.interval or ''}({self.arg}))"
+
+
+@dataclasses.dataclass(frozen=True)
+class Eventually:
+  """F_I(arg); `interval=None` is the unbounded eventually."""
+
+  arg: "Formula"
+  interval: Optional[Interval] = None
+
+  def __str__(self) -> str:
+    return f"(eventually{self.interval or ''}({self.arg}))"
+
+
+@dataclasses.dataclass(frozen=True)
+class Until:
+  """left U_I right; `interval=None` is the unbounded until."""
+
+  left: "Formula"
+  right: "Formula"
+  interval: Optional[Interval] = None
+
+  def __str__(self) -> str:
+    return f"({self.left} until{self.interval or ''} {self.right})"
+
+
+Formula = Union[Predicate, Not, And, Or, Implies, Always, Eventually, Until]
+TEMPORAL = (Always, Eventually, Until)
+
+
+def _num(v: float) -> str:
+  return repr(int(v)) if float(v).is_integer() else repr(float(v))
+
+
+def children(f: Formula) -> Tuple[Formula, ...]:
+  """Direct sub-formulas of `f`."""
+  if isinstance(f, Predicate):
+    return ()
+  if isinstance(f, (Not, Always, Eventually)):
+    return (f.arg,)
+  return (f.left, f.right)
+
+
+def signals_of(f: Formula) -> Tuple[str, ...]:
+  """Sorted names of the signals `f` reads."""
+  out = set()
+
+  def walk(g):
+    if isinstance(g, Predicate):
+      out.update(n for n, _ in g.terms)
+    for c in children(g):
+      walk(c)
+
+  walk(f)
+  return tuple(sorted(out))
+
+
+def check_signals(f: Formula, allowed) -> None:
+  """Raise UnknownSignalError if `f` reads a signal not in `allowed`."""
+  allowed = set(allowed)
+  bad = [s for s in signals_of(f) if s not in allowed]
+  if bad:
+    raise UnknownSignalError(f"unknown signal(s) {', '.join(map(repr, bad))} in formula {f} "
+                             f"(known: {', '.join(sorted(allowed))})")
+
+
+def has_seconds(f: Formula) -> bool:
+  """True when some interval of `f` is written in seconds (needs a dt to evaluate)."""
+  iv = getattr(f, "interval", None)
+  if iv is not None and iv.unit != "steps":
+    return True
+  return any(has_seconds(c) for c in children(f))
+
+
+def _steps(v: float, dt: float, what: str) -> int:
+  n = v / dt
+  r = round(n)
+  if abs(n - r) > 1e-6 * max(1.0, abs(n)):
+    raise IntervalError(f"interval bound {what}={v} s is not a multiple of dt={dt} s")
+  return int(r)
+
+
+def to_steps(f: Formula, dt: Optional[float] = None) -> Formula:
+  """Return `f` with every interval converted to control steps (`dt` seconds per step; needed only for "s" intervals)."""
+  if isinstance(f, Predicate):
+    return f
+  iv = getattr(f, "interval", None)
+  if iv is not None and iv.unit != "steps":
+    if dt is None or not (dt > 0 and math.isfinite(dt)):
+      raise IntervalError(f"formula {f} has intervals in seconds: pass a positive dt (seconds per step)")
+    iv = Interval(_steps(iv.lo, dt, "lo"), _steps(iv.hi, dt, "hi"), "steps")
+  kids = tuple(to_steps(c, dt) for c in children(f))
+  if isinstance(f, (Not,)):
+    return Not(kids[0])
+  if isinstance(f, (Always, Eventually)):
+    return type(f)(kids[0], iv)
+  if isinstance(f, Until):
+    return Until(kids[0], kids[1], iv)
+  return type(f)(*kids)
+
+
+def horizon(f: Formula) -> float:
+  """Future horizon in steps (how far past t the value at t looks); math.inf if f has an unbounded operator."""
+  if isinstance(f, Predicate):
+    return 0
+  hs = [horizon(c) for c in children(f)]
+  if isinstance(f, TEMPORAL):
+    if f.interval is None:
+      return math.inf
+    if f.interval.unit != "steps":
+      raise IntervalError("horizon() needs step intervals: call to_steps(formula, dt) first")
+    return int(f.interval.hi) + max(hs)
+  return max(hs)

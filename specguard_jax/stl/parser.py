@@ -1,0 +1,313 @@
+"""Text parser for STL, close to rtamt's syntax.
+
+Grammar (loosest binding first; `->` is right-associative, `until` left-associative like rtamt):
+  formula   := or ( ('->' | 'implies') formula )?
+  or        := and ( ('or' | '||' | '|') and )*
+  and       := until ( ('and' | '&&' | '&') until )*
+  until     := unary ( 'until' interval? unary )*
+  unary     := ('not' | '!') unary | ('always' | 'G') interval? unary | ('eventually' | 'F') interval? unary
+             | '(' formula ')' | predicate
+  predicate := affine ('>' | '>=' | '<' | '<=') affine        (affine: sums of constant * signal, e.g. 2*x - y + 1)
+  interval  := '[' bound (',' | ':') bound ']'      bound := number | PARAM, optionally followed by a unit
+Interval units: none = control steps (integers); 's' or 'ms' = seconds, converted to steps later with an explicit dt
+(`ast.to_steps`). As in rtamt, a unit written on one bound only applies to both. Identifiers found in `params` are
+constants (in expressions and interval bounds); every other identifier is a signal name.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Dict, Iterable, List, Mapping, Optional, Tuple
+
+from specguard_jax.stl import ast
+from specguard_jax.stl.errors import IntervalError, STLError, STLSyntaxError, UnknownSignalError
+
+_TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<id>[A-Za-z_][A-Za-z0-9_.]*)"
+                    r"|(?P<op>->|>=|<=|&&|\|\||[()\[\],:+\-*/<>!&|]))")
+_KEYWORDS = {"not", "and", "or", "implies", "always", "eventually", "until"}
+_CMP = {">", ">=", "<", "<="}
+_UNITS = {"s": ("s", 1.0), "ms": ("s", 1e-3), "step": ("steps", 1.0), "steps": ("steps", 1.0)}
+
+
+def _tokenize(text: str) -> List[Tuple[str, str, int]]:
+  toks, pos = [], 0
+  while True:
+    m = _TOKEN.match(text, pos)
+    if m is None or m.end() == pos:
+      rest = text[pos:]
+      if rest.strip():
+        p = pos + len(rest) - len(rest.lstrip())
+        raise STLSyntaxError(text, p, f"unexpected character {text[p]!r}")
+      break
+    kind = m.lastgroup
+    toks.append((kind, m.group(kind), m.start(kind)))
+    pos = m.end()
+  toks.append(("end", "", len(text)))
+  return toks
+
+
+class _Parser:
+  """Recursive-descent parser over a token list (one instance per text)."""
+
+  def __init__(self, text: str, params: Mapping[str, float], signals: Optional[Iterable[str]]):
+    self.text = text
+    self.used_param = False
+    self.toks = _tokenize(text)
+    self.i = 0
+    self.params = dict(params)
+    self.signals = None if signals is None else set(signals)
+
+  # --- token helpers ---
+  def peek(self, k: int = 0):
+    return self.toks[min(self.i + k, len(self.toks) - 1)]
+
+  def at(self, *values: str) -> bool:
+    kind, val, _ = self.peek()
+    return kind in ("op", "id") and val in values
+
+  def take(self):
+    t = self.toks[self.i]
+    self.i += 1
+    return t
+
+  def expect(self, value: str, what: str):
+    if not self.at(value):
+      self.fail(f"expected {what}")
+    return self.take()
+
+  def fail(self, problem: str, pos: Optional[int] = None):
+    raise STLSyntaxError(self.text, self.peek()[2] if pos is None else pos, problem)
+
+  # --- formulas ---
+  def parse(self) -> ast.Formula:
+    if self.peek()[0] == "end":
+      self.fail("empty formula")
+    f = self.formula()
+    if self.peek()[0] != "end":
+      self.fail("unexpected token after a complete formula")
+    return f
+
+  def formula(self):
+    left = self.or_()
+    if self.at("->", "implies"):
+      self.take()
+      return ast.Implies(left, self.formula())
+    return left
+
+  def or_(self):
+    f = self.and_()
+    while self.at("or", "||", "|"):
+      self.take()
+      f = ast.Or(f, self.and_())
+    return f
+
+  def and_(self):
+    f = self.until()
+    while self.at("and", "&&", "&"):
+      self.take()
+      f = ast.And(f, self.until())
+    return f
+
+  def until(self):
+    f = self.unary()
+    while self.at("until"):
+      self.take()
+      iv = self.interval() if self.at("[") else None
+      f = ast.Until(f, self.unary(), iv)
+    return f
+
+  def _is_temporal_kw(self, names) -> bool:
+    kind, val, _ = self.peek()
+    if kind != "id" or val not in names:
+      return False
+    return val in _KEYWORDS or self.peek(1)[1] in ("(", "[")  # 'G'/'F' only when followed by ( or [
+
+  def unary(self):
+    if self.at("not", "!"):
+      self.take()
+      return ast.Not(self.unary())
+    for names, cls in ((("always", "G"), ast.Always), (("eventually", "F"), ast.Eventually)):
+      if self._is_temporal_kw(names):
+        self.take()
+        iv = self.interval() if self.at("[") else None
+        return cls(self.unary(), iv)
+    if self.at("(") and not self._paren_is_arith():
+      self.take()
+      f = self.formula()
+      self.expect(")", "')' closing the parenthesised formula")
+      return f
+    kind, val, pos = self.peek()
+    if kind == "end":
+      self.fail("formula ended early: expected a predicate, 'not', a temporal operator or '('")
+    if kind == "id" and val in _KEYWORDS:
+      self.fail(f"unexpected keyword {val!r}: expected a predicate or a sub-formula")
+    if kind == "op" and val not in ("(", "-", "+"):
+      self.fail(f"unexpected {val!r}: expected a predicate or a sub-formula")
+    return self.predicate()
+
+  def _paren_is_arith(self) -> bool:
+    """At '(': is it an arithmetic group (the matching ')' is followed by a comparison or arithmetic operator)?"""
+    depth, j = 0, self.i
+    while True:
+      kind, val, pos = self.toks[j]
+      if kind == "end":
+        self.fail("unbalanced '(': no matching ')'")
+      if val == "(" and kind == "op":
+        depth += 1
+      elif val == ")" and kind == "op":
+        depth -= 1
+        if depth == 0:
+          nxt = self.toks[j + 1]
+          return nxt[0] == "op" and nxt[1] in _CMP | {"+", "-", "*", "/"}
+      j += 1
+
+  # --- predicates and affine expressions: (coefs dict, constant) ---
+  def predicate(self):
+    start = self.peek()[2]
+    self.used_param = False
+    lhs = self.affine()
+    kind, op, pos = self.peek()
+    if not (kind == "op" and op in _CMP):
+      self.fail("expected a comparison ('>', '>=', '<', '<=') after the expression")
+    self.take()
+    rhs = self.affine()
+    end = self.peek()[2]
+    if op in (">", ">="):
+      coefs, const = _sub(lhs, rhs)
+    else:
+      coefs, const = _sub(rhs, lhs)
+    terms = tuple((n, c) for n, c in sorted(coefs.items()) if c != 0.0)
+    if not terms:
+      self.fail("the predicate compares constants only: it must mention a signal", start)
+    text = "" if self.used_param else " ".join(self.text[start:end].split())  # keep str() re-parseable
+    return ast.Predicate(terms, const, text)
+
+  def affine(self):
+    acc = self.term()
+    while self.at("+", "-"):
+      op = self.take()[1]
+      t = self.term()
+      acc = _add(acc, t) if op == "+" else _sub(acc, t)
+    return acc
+
+  def term(self):
+    acc = self.factor()
+    while self.at("*", "/"):
+      op, pos = self.take()[1:]
+      rhs = self.factor()
+      if op == "*":
+        if acc[0] and rhs[0]:
+          self.fail("product of two signals: predicates must be affine in the signals", pos)
+        acc = _scale(rhs, acc[1]) if not acc[0] else _scale(acc, rhs[1])
+      else:
+        if rhs[0]:
+          self.fail("division by a signal: predicates must be affine in the signals", pos)
+        if rhs[1] == 0:
+          self.fail("division by zero", pos)
+        acc = _scale(acc, 1.0 / rhs[1])
+    return acc
+
+  def factor(self):
+    kind, val, pos = self.peek()
+    if self.at("-"):
+      self.take()
+      return _scale(self.factor(), -1.0)
+    if self.at("+"):
+      self.take()
+      return self.factor()
+    if self.at("("):
+      self.take()
+      e = self.affine()
+      self.expect(")", "')' closing the parenthesised expression")
+      return e
+    if kind == "num":
+      self.take()
+      return ({}, float(val))
+    if kind == "id" and val not in _KEYWORDS:
+      self.take()
+      if val in self.params:
+        self.used_param = True
+        return ({}, float(self.params[val]))
+      if self.signals is not None and val not in self.signals:
+        raise UnknownSignalError(f"unknown signal {val!r} at position {pos} of {self.text!r} "
+                                 f"(known: {', '.join(sorted(self.signals))})")
+      return ({val: 1.0}, 0.0)
+    self.fail("expected a number, a signal name or '('")
+
+  # --- intervals ---
+  def interval(self) -> ast.Interval:
+    start = self.expect("[", "'['")[2]
+    if self.at("]"):
+      self.fail("empty interval '[]'")
+    lo, ulo = self.bound()
+    if not self.at(",", ":"):
+      self.fail("expected ',' or ':' between the interval bounds")
+    self.take()
+    hi, uhi = self.bound()
+    self.expect("]", "']' closing the interval")
+    units = {u[0] for u in (ulo, uhi) if u is not None}
+    if len(units) > 1:
+      raise STLSyntaxError(self.text, start, "interval mixes steps and seconds")
+    unit = units.pop() if units else "steps"
+    lo *= (ulo or uhi or ("steps", 1.0))[1]
+    hi *= (uhi or ulo or ("steps", 1.0))[1]
+    if lo < 0:
+      raise IntervalError(f"negative interval bound in {self.text[start:self.peek()[2]]!r} at position {start}")
+    if hi < lo:
+      raise IntervalError(f"inverted interval {self.text[start:self.peek()[2]]!r} at position {start} (hi < lo)")
+    if unit == "steps" and not (float(lo).is_integer() and float(hi).is_integer()):
+      raise IntervalError(f"interval {self.text[start:self.peek()[2]]!r} at position {start}: step bounds must be "
+                          "integers (write seconds with a unit, e.g. [0s, 2.5s])")
+    return ast.Interval(float(lo), float(hi), unit)
+
+  def bound(self):
+    kind, val, pos = self.peek()
+    sign = 1.0
+    if self.at("-"):
+      self.take()
+      sign = -1.0
+      kind, val, pos = self.peek()
+    if kind == "num":
+      self.take()
+      v = float(val)
+    elif kind == "id" and val in self.params:
+      self.take()
+      v = float(self.params[val])
+    elif kind == "id" and val in ("inf", "oo"):
+      self.fail("unbounded interval: write the operator without an interval instead")
+    else:
+      self.fail("expected a number or a parameter name as interval bound")
+    if not math.isfinite(v):
+      self.fail("interval bound must be finite", pos)
+    unit = None
+    if self.peek()[0] == "id" and self.peek()[1] in _UNITS:
+      unit = _UNITS[self.take()[1]]
+    return sign * v, unit
+
+
+def _add(a, b):
+  c = dict(a[0])
+  for n, v in b[0].items():
+    c[n] = c.get(n, 0.0) + v
+  return c, a[1] + b[1]
+
+
+def _scale(a, s):
+  return {n: v * s for n, v in a[0].items()}, a[1] * s
+
+
+def _sub(a, b):
+  return _add(a, _scale(b, -1.0))
+
+
+def parse(text: str, params: Optional[Mapping[str, float]] = None,
+          signals: Optional[Iterable[str]] = None) -> ast.Formula:
+  """Parse STL `text` into a Formula.
+
+  params: identifiers to substitute by constants (e.g. {"CP_DIST": 5.0}).  signals: if given, the allowed signal names
+  (anything else raises UnknownSignalError).  Raises an STLError (a ValueError) with a one-line message on bad input.
+  """
+  if not isinstance(text, str):
+    raise STLError(f"STL text must be a str, got {type(text).__name__}")
+  return _Parser(text, params or {}, signals).parse()
