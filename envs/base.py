@@ -1,0 +1,366 @@
+"""Vehicle-agnostic RAV environment: world + mission per episode, sensors -> EKF -> navigator -> autopilot -> MJX.
+
+One env step is `ticks_per_step` autopilot ticks of `tick_dt` s (default 5 x 0.02 s = 0.1 s, a 10 Hz policy over a
+50 Hz autopilot and physics), run with `lax.scan`. Per tick:
+
+  true state --sensors--> SensorReadings --(attack hook)--> EKF --> navigator (+ optional velocity-setpoint override)
+  --> autopilot --> actuators --> mjx.step --> true state
+
+After the ticks the monitored signals (specguard_jax/signals.py) are computed from the TRUE state, termination and
+truncation are decided, and the observation is built from the EKF estimate. Subclasses (envs/drone.py,
+envs/rover.py) provide the physics and the autopilot of their vehicle through the `_vehicle_*` hooks.
+
+The env is a `brax.envs.base.Env`: reset/step are jittable and vmappable and Brax's VmapWrapper / EpisodeWrapper work.
+Brax's AutoResetWrapper does NOT fit (it restores a cached first state, so every episode would replay the same
+mission and world, and it ignores `State.info`, where our episode state lives): use `envs.wrappers.AutoReset`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from envs import missions as missions_lib
+from envs import worlds as worlds_lib
+from specguard_jax import ekf as ekf_lib
+from specguard_jax import math3d
+from specguard_jax import sensors as sensors_lib
+from specguard_jax.autopilot import navigator as nav_lib
+from specguard_jax.types import SensorReadings, TrueState
+
+ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
+OBS_SIZE = 24
+CONTROL_MODES = ("autopilot", "override")
+OVERRIDE_FRAMES = ("world", "body")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+  """Static env configuration (hashable; changing it recompiles).
+
+  world: preset name (envs.worlds.PRESETS).  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
+  max_episode_s: hard cap on an episode (s); the per-mission limit is 2 x nominal duration + 30 s, below this cap.
+  stall_s: no progress (1 m closer to the target) for this long -> stall.  control_mode: 'autopilot' (action ignored)
+  or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter).
+  override_frame: 'world' (ENU) or 'body' (x/y rotated by the estimated yaw, as in the paper's appendix).
+  domain_randomization: per-episode wind, gusts, thrust/drive gain, drag, friction, mass.
+  clearance: obstacle/fence clearance from the mission path used by world generation (m).
+  """
+  world: str = "suburban_residential"
+  tick_dt: float = 0.02
+  ticks_per_step: int = 5
+  max_episode_s: float = 400.0
+  stall_s: float = 20.0
+  control_mode: str = "autopilot"
+  override_frame: str = "world"
+  domain_randomization: bool = True
+  clearance: float = 9.0
+  mission: Any = None  # envs.missions.MissionConfig; None -> the vehicle's preset
+
+  def validate(self):
+    if self.world not in worlds_lib.PRESETS:
+      raise ValueError(f"unknown world {self.world!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
+    if self.control_mode not in CONTROL_MODES:
+      raise ValueError(f"unknown control_mode {self.control_mode!r}; choose one of {CONTROL_MODES}")
+    if self.override_frame not in OVERRIDE_FRAMES:
+      raise ValueError(f"unknown override_frame {self.override_frame!r}; choose one of {OVERRIDE_FRAMES}")
+    if self.tick_dt <= 0 or self.ticks_per_step < 1:
+      raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
+
+
+def tree_where(cond, a, b):
+  """Select pytree a where cond else b (cond broadcast against each leaf's leading axes)."""
+  def sel(x, y):
+    c = jnp.reshape(cond, cond.shape + (1,) * (x.ndim - cond.ndim))
+    return jnp.where(c, x, y)
+  return jax.tree.map(sel, a, b)
+
+
+class RAVEnv(Env):
+  """Base class; see module docstring. Subclasses set `vehicle`, `asset`, `radius` and implement the hooks."""
+
+  vehicle: str = ""
+  asset: str = ""
+  radius: float = 0.5  # collision radius of the vehicle (m): obstacle_distance below this is a collision
+
+  def __init__(self, config: EnvConfig | None = None, **overrides):
+    config = dataclasses.replace(config or EnvConfig(), **overrides)
+    config.validate()
+    self.config = config
+    self.mj_model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS, self.asset))
+    self.mj_model.opt.timestep = config.tick_dt
+    self.mjx_model = mjx.put_model(self.mj_model)
+    self.preset = worlds_lib.PRESETS[config.world]
+    self.mission_cfg = config.mission or self._default_mission_config()
+    self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
+    sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
+    self.dt = config.tick_dt * config.ticks_per_step
+
+  # ---------------------------------------------------------------- Env API
+  @property
+  def observation_size(self) -> int:
+    return OBS_SIZE
+
+  @property
+  def action_size(self) -> int:
+    return 3
+
+  @property
+  def backend(self) -> str:
+    return "mjx"
+
+  def reset(self, rng: jax.Array) -> State:
+    k_mission, k_world, k_dr, k_phys, k_sens, k_run = jax.random.split(rng, 6)
+    mission = missions_lib.generate_mission(self.mission_cfg, k_mission)
+    return self.reset_with_mission(mission, k_world, k_dr, k_phys, k_sens, k_run)
+
+  def reset_to_mission(self, mission, rng: jax.Array) -> State:
+    """Reset flying a given mission (e.g. loaded from a QGroundControl file); world generated around it."""
+    k_world, k_dr, k_phys, k_sens, k_run = jax.random.split(rng, 5)
+    return self.reset_with_mission(mission, k_world, k_dr, k_phys, k_sens, k_run)
+
+  def reset_with_mission(self, mission, k_world, k_dr, k_phys, k_sens, k_run) -> State:
+    world = worlds_lib.generate_world(self.preset, mission, k_world, clearance=self.config.clearance)
+    dr = self._sample_domain(world, k_dr)
+    data, truth = self._vehicle_init(mission, dr, k_phys)
+    sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
+    k_sens2, k_run = jax.random.split(k_run)
+    sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings)
+    nav = nav_lib.nav_init(mission)
+    sim = {
+        "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,
+        "ctrl": self._vehicle_control_init(), "dr": dr, "gust": jnp.zeros(3),
+        "vehicle": self._vehicle_extra_init(),
+    }
+    signals = self._signals(world, mission, truth, nav)
+    episode = {
+        "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
+        "stall": jnp.zeros(()), "complete": jnp.zeros(()), "nan": jnp.zeros(()),
+        "best_dist": signals["dist_wp"], "last_progress": jnp.zeros(()), "progress_key": jnp.zeros((), jnp.int32),
+        "min_obstacle_distance": signals["obstacle_distance"], "min_fence_margin": signals["fence_margin"],
+    }
+    info = {
+        "sim": sim, "mission": mission, "world": world, "signals": signals, "episode": episode, "rng": k_run,
+        "truncation": jnp.zeros(()), "override_active": jnp.zeros(()), "time": jnp.zeros(()),
+    }
+    obs = self._observation(world, mission, sim)
+    metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
+    return State(pipeline_state=data, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
+                 info=info)
+
+  def step(self, state: State, action: jax.Array) -> State:
+    info = state.info
+    mission, world, sim0 = info["mission"], info["world"], info["sim"]
+    rng, k_ticks = jax.random.split(info["rng"])
+    override_vel = self._override_velocity(action, sim0)
+    override = self._override_active(sim0)
+
+    def tick(carry, key):
+      data, sim, min_obs = carry
+      data, sim = self._tick(data, sim, mission, world, override_vel, override, key)
+      d_obs = worlds_lib.obstacle_distance(world, self._query_pos(sim["truth"].pos))
+      return (data, sim, jnp.minimum(min_obs, d_obs)), None
+
+    keys = jax.random.split(k_ticks, self.config.ticks_per_step)
+    (data, sim, min_obs), _ = jax.lax.scan(tick, (state.pipeline_state, sim0, jnp.full((), 1e3)), keys)
+
+    truth, nav = sim["truth"], sim["nav"]
+    signals = self._signals(world, mission, truth, nav)
+    ep = dict(info["episode"])
+    t = info["time"] + self.dt
+    # ---- termination ----
+    finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+    nan = ~finite
+    collision = (min_obs < self.radius) & finite
+    crash = self._vehicle_crashed(sim, signals) & finite
+    complete = (nav.phase == nav_lib.DONE) & finite & ~collision & ~crash
+    # Stall: no 1 m of progress towards the current target within stall_s (loiter and done excluded).
+    key = nav.target * 8 + nav.phase
+    new_key = key != ep["progress_key"]
+    improved = signals["dist_wp"] < ep["best_dist"] - 1.0
+    best = jnp.where(new_key | improved, signals["dist_wp"], ep["best_dist"])
+    last_prog = jnp.where(new_key | improved, t, ep["last_progress"])
+    moving_phase = (nav.phase != nav_lib.LOITER) & (nav.phase != nav_lib.DONE)
+    stall = moving_phase & (t - last_prog > self.config.stall_s) & finite
+    fence_breach = (signals["fence_margin"] < 0.0) & finite
+    terminated = nan | collision | crash | complete | stall
+    limit = jnp.minimum(self.config.max_episode_s, 2.0 * mission.nominal_duration + 30.0)
+    truncated = (t >= limit) & ~terminated
+
+    ep.update(
+        collision=jnp.maximum(ep["collision"], collision), crash=jnp.maximum(ep["crash"], crash),
+        fence_breach=jnp.maximum(ep["fence_breach"], fence_breach), stall=jnp.maximum(ep["stall"], stall),
+        complete=jnp.maximum(ep["complete"], complete), nan=jnp.maximum(ep["nan"], nan),
+        best_dist=best, last_progress=last_prog, progress_key=key.astype(jnp.int32),
+        min_obstacle_distance=jnp.minimum(ep["min_obstacle_distance"], min_obs),
+        min_fence_margin=jnp.minimum(ep["min_fence_margin"], signals["fence_margin"]))
+    ep = {k: v.astype(info["episode"][k].dtype) for k, v in ep.items()}
+
+    # NaN physics never leaves the env: fall back to the previous (finite) state, zero reward, episode ends.
+    data = tree_where(finite, data, state.pipeline_state)
+    sim = tree_where(finite, sim, sim0)
+    signals = tree_where(finite, signals, info["signals"])
+    obs = self._observation(world, mission, sim)
+    obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
+    reward = jnp.zeros(())
+    done = (terminated | truncated).astype(jnp.float32)
+    metrics = {"collision": collision.astype(jnp.float32), "crash": crash.astype(jnp.float32),
+               "fence_breach": fence_breach.astype(jnp.float32), "stall": stall.astype(jnp.float32),
+               "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32)}
+    new_info = dict(info, sim=sim, signals=signals, episode=ep, rng=rng, time=t,
+                    truncation=truncated.astype(jnp.float32), override_active=override.astype(jnp.float32))
+    return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
+
+  # ---------------------------------------------------------------- one autopilot tick
+  def _tick(self, data, sim, mission, world, override_vel, override, key):
+    cfg = self.config
+    k_sense, k_gust = jax.random.split(key)
+    sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
+    readings = self._attack(readings, sim)
+    ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], readings, cfg.tick_dt)
+    landed = self._vehicle_landed(sim)
+    nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, ekf.pos, landed, cfg.tick_dt)
+    use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
+    vel_sp = jnp.where(use_override, override_vel, vel_nav)
+    gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
+    sim = dict(sim, sensors=sens_state, readings=readings, ekf=ekf, nav=nav, gust=gust)
+    data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
+    return data, sim
+
+  def _attack(self, readings: SensorReadings, sim) -> SensorReadings:
+    """Hook where sensor attacks enter (before the EKF). Identity here; see specguard_jax.attacks."""
+    return readings
+
+  def _gust_step(self, gust, dr, key):
+    """Ornstein-Uhlenbeck wind gust (m/s), correlation time 2 s, stationary std dr['gust_std']."""
+    tau = 2.0
+    a = jnp.exp(-self.config.tick_dt / tau)
+    return a * gust + jnp.sqrt(1 - a * a) * dr["gust_std"] * jax.random.normal(key, (3,)) * jnp.array([1, 1, 0.3])
+
+  def _sample_domain(self, world, key):
+    """Per-episode domain randomisation (SpecGuard Sec. 5.2: wind, thrust, drag, friction) + mass."""
+    ks = jax.random.split(key, 6)
+    on = 1.0 if self.config.domain_randomization else 0.0
+    u = lambda k, lo, hi: 1.0 + on * jax.random.uniform(k, (), minval=lo, maxval=hi)
+    return {
+        "mass_scale": u(ks[0], -0.1, 0.1), "thrust_gain": u(ks[1], -0.08, 0.08), "drag_scale": u(ks[2], -0.3, 0.3),
+        "friction": u(ks[3], -0.2, 0.2),
+        "wind": world.wind_mean * on, "gust_std": world.gust_std * on,
+    }
+
+  # ---------------------------------------------------------------- signals and observation
+  def _query_pos(self, pos):
+    """Position used for world queries (rovers query at ground level)."""
+    return pos
+
+  def _signals(self, world, mission, truth: TrueState, nav) -> dict:
+    """The monitored signals of specguard_jax/signals.py from the TRUE state. dict name -> [] float32."""
+    pos = self._query_pos(truth.pos)
+    q = worlds_lib.world_queries(world, mission, pos, nav.target)
+    phase = nav.phase
+    vel = truth.vel
+    speed_xy = jnp.linalg.norm(vel[:2])
+    alt = truth.pos[2] - self._ground_offset()
+    last = mission.n_waypoints - 1
+    wp = mission.waypoints
+    near_target = jnp.linalg.norm((wp[nav.target] - truth.pos)[:2]) < self._nav_params().turn_zone * \
+        mission.acceptance_radius
+    near_start = jnp.linalg.norm((nav.leg_start - truth.pos)[:2]) < self._nav_params().turn_zone * \
+        mission.acceptance_radius
+    corner_ahead = near_target & (nav.target < last) & (nav.target != mission.loiter_wp)
+    corner_behind = near_start & (nav.target > 0)
+    cruise = phase == nav_lib.CRUISE
+    in_turn = cruise & (corner_ahead | corner_behind)
+    tko_window = (phase == nav_lib.TAKEOFF) & (alt >= 1.5) & (alt <= mission.takeoff_alt - 3.0)
+    f = lambda b: b.astype(jnp.float32)
+    slack = jnp.where(phase == nav_lib.DONE, 1e3, mission.deadline[nav.target] - nav.time)
+    loiter_dev = jnp.where(phase == nav_lib.LOITER, jnp.linalg.norm((wp[nav.target] - truth.pos)[:2]), 0.0)
+    s = {
+        "obstacle_distance": q["obstacle_distance"], "path_deviation": q["path_deviation"], "altitude": alt,
+        "dist_wp": q["dist_wp"], "dist_final": q["dist_final"], "wp_slack": slack,
+        "fence_margin": q["fence_margin"], "fence_h": q["fence_h"], "fence_v": q["fence_v"],
+        "loiter_deviation": loiter_dev, "speed_xy": speed_xy, "speed_z": vel[2],
+        "descent_speed": jnp.maximum(0.0, -vel[2]),
+        "in_takeoff": f(tko_window), "in_cruise": f(cruise & ~in_turn), "in_turn": f(in_turn),
+        "in_loiter": f(phase == nav_lib.LOITER),
+        "in_descent": f((phase == nav_lib.DESCENT) & (alt > self._nav_params().land_alt2)),
+        "in_landing": f((phase == nav_lib.DESCENT) & (alt <= self._nav_params().land_alt2)),
+        "time": nav.time,
+    }
+    return {k: jnp.asarray(v, jnp.float32) for k, v in s.items()}
+
+  def _observation(self, world, mission, sim) -> jax.Array:
+    """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
+    target waypoint, velocity, acceleration, Euler angles) + mission context: direction of the next leg [3],
+    unit direction to the nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude,
+    horizontal speed, waypoint slack (s)."""
+    ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
+    pos = ekf.pos
+    wp = mission.waypoints
+    target = wp[nav.target]
+    nxt = wp[jnp.minimum(nav.target + 1, mission.n_waypoints - 1)]
+    leg_next = nxt - target
+    leg_next = leg_next / (jnp.linalg.norm(leg_next) + 1e-6)
+    acc = math3d.quat_to_rot(ekf.quat) @ (readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
+    qpos = self._query_pos(pos)
+    d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_distance(world, p))(qpos)
+    q = worlds_lib.world_queries(world, mission, qpos, nav.target)
+    obs = jnp.concatenate([
+        pos - target, ekf.vel, acc, ekf_lib.ekf_euler(ekf), leg_next, -g_obs,
+        jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
+                   pos[2] - self._ground_offset(), jnp.linalg.norm(ekf.vel[:2]),
+                   jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
+    return obs.astype(jnp.float32)
+
+  def _override_velocity(self, action, sim):
+    """Action [3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""
+    a = jnp.asarray(action, jnp.float32)[:3]
+    if self.config.override_frame == "body":
+      yaw = ekf_lib.ekf_euler(sim["ekf"])[2]
+      xy = math3d.yaw_rot2(yaw) @ a[:2]
+      a = jnp.concatenate([xy, a[2:3]])
+    return jnp.nan_to_num(a)
+
+  def _override_active(self, sim):
+    return jnp.asarray(self.config.control_mode == "override")
+
+  # ---------------------------------------------------------------- vehicle hooks
+  def _default_mission_config(self):
+    raise NotImplementedError
+
+  def _default_estimation_configs(self):
+    raise NotImplementedError
+
+  def _nav_params(self) -> nav_lib.NavParams:
+    raise NotImplementedError
+
+  def _ground_offset(self) -> float:
+    """Height of the body origin above the ground when standing (m)."""
+    return 0.0
+
+  def _vehicle_init(self, mission, dr, key):
+    raise NotImplementedError
+
+  def _vehicle_control_init(self):
+    raise NotImplementedError
+
+  def _vehicle_extra_init(self):
+    return {}
+
+  def _vehicle_landed(self, sim):
+    return jnp.zeros((), bool)
+
+  def _vehicle_crashed(self, sim, signals):
+    return jnp.zeros((), bool)
+
+  def _vehicle_tick(self, data, sim, mission, vel_sp, leg_dir):
+    raise NotImplementedError
+
