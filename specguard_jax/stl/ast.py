@@ -37,7 +37,7 @@ class Predicate:
 
   terms: Tuple[Tuple[str, float], ...]
   offset: float
-  text: str = ""
+  text: str = dataclasses.field(default="", compare=False)
 
   def __str__(self) -> str:
     if self.text:
