@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from specguard_jax.sensors import (ACCEL_RANGE, GRAVITY, GYRO_RANGE, euler_to_quat, quat_to_euler,
-                                   quat_to_rotmat, wrap_angle)
+from specguard_jax.math3d import euler_to_quat, quat_mul, quat_to_euler, quat_to_rot, wrap_angle
+from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
 from specguard_jax.types import SensorReadings
 
 # Innovation channels recorded in EKFState (order is part of the API).
@@ -70,7 +70,7 @@ class EKFConfig:
   mag_heading_noise: float = 0.05  # rad
   flow_noise: float = 0.1  # rad/s
   odom_noise: float = 0.1  # m/s
-  nhc_noise: float = 0.05  # m/s, body lateral/vertical velocity pseudo-measurement
+  nhc_noise: float = 0.1  # m/s, body lateral/vertical velocity pseudo-measurement
   # gates (σ)
   gps_pos_gate: float = 5.0  # EKF2_GPS_P_GATE
   gps_vel_gate: float = 5.0  # EKF2_GPS_V_GATE
@@ -149,17 +149,6 @@ def _skew(v):
   return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _quat_mul(a, b):
-  aw, ax, ay, az = a[0], a[1], a[2], a[3]
-  bw, bx, by, bz = b[0], b[1], b[2], b[3]
-  return jnp.stack([
-    aw * bw - ax * bx - ay * by - az * bz,
-    aw * bx + ax * bw + ay * bz - az * by,
-    aw * by - ax * bz + ay * bw + az * bx,
-    aw * bz + ax * by - ay * bx + az * bw,
-  ])
-
-
 def _rotvec_to_quat(v):
   """[3] rotation vector (rad) -> [4] unit quaternion; smooth at 0."""
   a2 = jnp.sum(v * v)
@@ -225,11 +214,11 @@ def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
   w = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE) - s.gyro_bias
   a = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE) - s.accel_bias
-  r = quat_to_rotmat(s.quat)
+  r = quat_to_rot(s.quat)
   acc_w = r @ a + jnp.array([0.0, 0.0, -GRAVITY])
   pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
   vel = s.vel + acc_w * dt
-  quat = _normalize_quat(_quat_mul(s.quat, _rotvec_to_quat(w * dt)))
+  quat = _normalize_quat(quat_mul(s.quat, _rotvec_to_quat(w * dt)))
 
   eye3 = jnp.eye(3)
   F = jnp.eye(N_ERR)
@@ -252,14 +241,14 @@ def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
   """Adds an error-state correction dx[15] to the nominal state."""
   dq = _rotvec_to_quat(dx[ATT])
   return s.replace(
-    pos=s.pos + dx[POS], vel=s.vel + dx[VEL], quat=_normalize_quat(_quat_mul(dq, s.quat)),
+    pos=s.pos + dx[POS], vel=s.vel + dx[VEL], quat=_normalize_quat(quat_mul(dq, s.quat)),
     gyro_bias=jnp.clip(s.gyro_bias + dx[GBIAS], -cfg.gyro_bias_limit, cfg.gyro_bias_limit),
     accel_bias=jnp.clip(s.accel_bias + dx[ABIAS], -cfg.accel_bias_limit, cfg.accel_bias_limit))
 
 
 def _predict_meas(s: EKFState, fn):
   """Predicted measurement fn(pos, vel, R) -> [m] and its Jacobian H [m, 15] w.r.t. the error state."""
-  r = quat_to_rotmat(s.quat)
+  r = quat_to_rot(s.quat)
 
   def h(dx):
     rr = (jnp.eye(3) + _skew(dx[ATT])) @ r
@@ -411,12 +400,12 @@ def ekf_body_rates(state: EKFState, readings: SensorReadings):
 
 def ekf_rotmat(state: EKFState):
   """[3, 3] estimated rotation body -> world."""
-  return quat_to_rotmat(state.quat)
+  return quat_to_rot(state.quat)
 
 
 def ekf_body_velocity(state: EKFState):
   """[3] estimated velocity in the body frame (FLU), m/s."""
-  return quat_to_rotmat(state.quat).T @ state.vel
+  return quat_to_rot(state.quat).T @ state.vel
 
 
 def ekf_std(state: EKFState):

@@ -6,7 +6,7 @@ Models (per vehicle; all draws from the `rng` argument, everything jittable and 
   * gyroscope (every tick): body rate + bias + white noise; the bias random-walks.
   * accelerometer (every tick): body specific force R^T (acc - g), g = (0, 0, -9.81), + bias + white noise; the bias
     random-walks.
-  * magnetometer (50 Hz): delivered as a heading `mag_yaw` = true yaw + white noise, wrapped to [-pi, pi).
+  * magnetometer (50 Hz): delivered as a heading `mag_yaw` = true yaw + white noise, wrapped to (-pi, pi].
   * barometer (25 Hz): altitude above the ground plane + white noise + a slowly random-walking drift.
   * optical flow (25 Hz, drone only): (v_body_x, v_body_y) / height above ground (flat terrain at z = 0) + white noise;
     flow[0] pairs with forward, flow[1] with leftward body velocity (rad/s, already gyro-compensated). Below
@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from specguard_jax.math3d import quat_to_euler, quat_to_rot, wrap_angle
 from specguard_jax.types import SensorReadings, TrueState
 
 GRAVITY = 9.81  # m/s^2; world gravity vector is (0, 0, -GRAVITY)
@@ -108,52 +109,9 @@ class SensorState:
   held: SensorReadings
 
 
-# ----------------------------------------------------------------------------------------------------------------------
-# rotation helpers (MuJoCo (w, x, y, z) quaternions, body -> world; Euler ZYX (roll, pitch, yaw))
-
-
-def wrap_angle(a):
-  """Wraps angles (rad) to [-pi, pi)."""
-  return (a + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
-
-
-def quat_to_rotmat(q):
-  """[4] (w, x, y, z) -> [3, 3] rotation matrix R (body -> world). Normalises q."""
-  q = q / jnp.maximum(jnp.linalg.norm(q), 1e-12)
-  w, x, y, z = q[0], q[1], q[2], q[3]
-  return jnp.array([
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-  ])
-
-
-def quat_to_euler(q):
-  """[4] (w, x, y, z) -> [3] (roll, pitch, yaw) rad, intrinsic Z-Y-X."""
-  r = quat_to_rotmat(q)
-  roll = jnp.arctan2(r[2, 1], r[2, 2])
-  pitch = jnp.arcsin(jnp.clip(-r[2, 0], -1.0, 1.0))
-  yaw = jnp.arctan2(r[1, 0], r[0, 0])
-  return jnp.stack([roll, pitch, yaw])
-
-
-def euler_to_quat(e):
-  """[3] (roll, pitch, yaw) rad -> [4] (w, x, y, z), intrinsic Z-Y-X."""
-  cr, sr = jnp.cos(e[0] / 2), jnp.sin(e[0] / 2)
-  cp, sp = jnp.cos(e[1] / 2), jnp.sin(e[1] / 2)
-  cy, sy = jnp.cos(e[2] / 2), jnp.sin(e[2] / 2)
-  return jnp.stack([
-    cr * cp * cy + sr * sp * sy,
-    sr * cp * cy - cr * sp * sy,
-    cr * sp * cy + sr * cp * sy,
-    cr * cp * sy - sr * sp * cy,
-  ])
-
-
 def quat_yaw(q):
-  """[4] -> [] yaw (rad) of a body->world quaternion."""
-  r = quat_to_rotmat(q)
-  return jnp.arctan2(r[1, 0], r[0, 0])
+  """[4] -> [] yaw (rad) of a body->world quaternion (ZYX Euler yaw)."""
+  return quat_to_euler(q)[2]
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -181,7 +139,7 @@ def _measure(cfg: SensorConfig, truth: TrueState, gyro_bias, accel_bias, gps_dri
   """Fresh samples of every sensor (no rate logic). Returns a SensorReadings with all fresh flags 1 (flow: validity)."""
   k = jax.random.split(rng, 7)
   f32 = jnp.float32
-  r = quat_to_rotmat(truth.quat)
+  r = quat_to_rot(truth.quat)
   vel_b = r.T @ truth.vel
   sig_p = jnp.array([cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_v], f32)
   sig_v = jnp.array([cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_v], f32)
