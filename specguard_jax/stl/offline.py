@@ -94,4 +94,6 @@ def robustness(formula: Union[str, ast.Formula], signals: Mapping[str, jnp.ndarr
   if length is not None:
     t = next(iter(sig.values())).shape[-1]
     valid = jnp.arange(t) < jnp.asarray(length)[..., None]
+    out = evaluate(f, sig, valid)
+    return jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape))
   return evaluate(f, sig, valid)
