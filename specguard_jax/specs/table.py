@@ -141,7 +141,7 @@ def validate(table: SpecTable) -> SpecTable:
       _parse(s, params, f"({e}) > 0", "reward signal")
     if s.reward_guard:
       g = _parse(s, params, s.reward_guard, "reward guard")
-      if math.isinf(stl.horizon(g)) or stl.horizon(g) > 0:
+      if stl.is_temporal(g):
         raise SpecError(f"spec {s.name}: reward guard {s.reward_guard!r} must not use temporal operators")
     if s.family != "none":
       _threshold(s, params)
@@ -232,7 +232,7 @@ def infer_reward(formula: stl.Formula):
   if not isinstance(formula, stl.Always) or formula.interval is not None:
     return None
   body, guard = formula.arg, ""
-  if isinstance(body, stl.Implies) and math.isfinite(stl.horizon(body.left)) and stl.horizon(body.left) == 0:
+  if isinstance(body, stl.Implies) and not stl.is_temporal(body.left):
     guard, body = str(body.left), body.right
   if not isinstance(body, stl.Predicate):
     return None

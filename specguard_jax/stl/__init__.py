@@ -7,7 +7,7 @@ Intervals without a unit are control steps; with 's'/'ms' they are seconds, conv
 """
 
 from specguard_jax.stl.ast import (Always, And, Eventually, Formula, Implies, Interval, Not, Or, Predicate, Until,
-                                   horizon, signals_of, to_steps)
+                                   horizon, is_temporal, signals_of, to_steps)
 from specguard_jax.stl.errors import (IntervalError, STLError, STLSyntaxError, UnknownSignalError,
                                       UnsupportedOnlineError)
 from specguard_jax.stl.offline import robustness

@@ -190,6 +190,11 @@ def to_steps(f: Formula, dt: Optional[float] = None) -> Formula:
   return type(f)(*kids)
 
 
+def is_temporal(f: Formula) -> bool:
+  """True when `f` contains a temporal operator."""
+  return isinstance(f, TEMPORAL) or any(is_temporal(c) for c in children(f))
+
+
 def horizon(f: Formula) -> float:
   """Future horizon in steps (how far past t the value at t looks); math.inf if f has an unbounded operator."""
   if isinstance(f, Predicate):
