@@ -150,3 +150,20 @@ def min_sdf_on_polyline(sdf, points: jnp.ndarray, iters: int = 40) -> jnp.ndarra
   """Minimum of a convex sdf(p [3]) over the polyline points [K, 3] (pad by repeating the last point). Returns []."""
   d = jax.vmap(lambda a, b: min_sdf_on_segment(sdf, a, b, iters))(points[:-1], points[1:])
   return jnp.min(d)
+
+
+def polyline_clear(sdf, points: jnp.ndarray, threshold, k: int = 4, iters: int = 32) -> jnp.ndarray:
+  """True iff a CONVEX sdf(p [3]) is >= threshold everywhere on the polyline points [K, 3] (conservative-exact).
+
+  Cheap lower bounds sdf(midpoint) - length / 2 (sdf is 1-Lipschitz) rank the segments; the k lowest get the exact
+  golden-section minimum, and the rest must be certified by their lower bound (else the answer is False, which
+  only happens when more than k segments pass within reach of the shape). Returns [] bool.
+  """
+  a, b = points[:-1], points[1:]
+  mid = 0.5 * (a + b)
+  lb = jax.vmap(sdf)(mid) - 0.5 * safe_norm(b - a)
+  k = min(k, lb.shape[0])
+  neg_lb, idx = jax.lax.top_k(-lb, k)
+  exact = jax.vmap(lambda i: min_sdf_on_segment(sdf, a[i], b[i], iters))(idx)
+  rest_ok = True if k == lb.shape[0] else -jax.lax.top_k(-lb, k + 1)[0][k] >= threshold
+  return jnp.all(exact >= threshold) & rest_ok

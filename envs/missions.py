@@ -170,6 +170,48 @@ def mission_timing(home, waypoints, n_waypoints, takeoff_alt, cruise_speed, loit
 # Generator
 
 
+class UniformPool:
+  """Hands out slices of ONE jax.random.uniform draw (trace-time helper, local to one generator call).
+
+  Each separate jax.random call adds a threefry kernel that XLA compiles slowly on CPU (about 0.4 s each);
+  generators draw all their randomness at once instead. `size` must cover every take().
+  """
+
+  def __init__(self, rng: jax.Array, size: int):
+    self._u = jax.random.uniform(rng, (size,))
+    self._i = 0
+
+  def take(self, shape=()) -> jnp.ndarray:
+    """U(0, 1) array of the given shape."""
+    n = math.prod(shape)
+    if self._i + n > self._u.shape[0]:
+      raise ValueError("UniformPool exhausted: raise its size")
+    out = self._u[self._i:self._i + n].reshape(shape)
+    self._i += n
+    return out
+
+  def uniform(self, lo, hi, shape=()) -> jnp.ndarray:
+    return lo + self.take(shape) * (jnp.asarray(hi) - lo)
+
+  def bernoulli(self, p, shape=()) -> jnp.ndarray:
+    return self.take(shape) < p
+
+  def sign(self, shape=()) -> jnp.ndarray:
+    return jnp.where(self.take(shape) < 0.5, 1.0, -1.0)
+
+  def randint(self, lo, hi, shape=()) -> jnp.ndarray:
+    """Integers uniform in [lo, hi] (inclusive), int32."""
+    lo = jnp.asarray(lo)
+    return jnp.minimum(lo + jnp.floor(self.take(shape) * (hi - lo + 1)), hi).astype(jnp.int32)
+
+  def categorical(self, weights, shape=()) -> jnp.ndarray:
+    """Indices in [0, K) with probability proportional to non-negative weights [K], int32."""
+    cdf = jnp.cumsum(weights)
+    u = self.take(shape)[..., None] * cdf[-1]
+    return jnp.minimum(jnp.sum(u >= cdf, axis=-1), weights.shape[0] - 1).astype(jnp.int32)
+
+
+
 def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   """Sample one mission from cfg (static) with the PRNG key rng. Jittable (cfg static) and vmappable over rng.
 
@@ -179,43 +221,37 @@ def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   climb gradient is <= (alt_hi - alt_lo) / leg_lo (20 % by default). Home is the origin.
   """
   m = MAX_WAYPOINTS
-  keys = jax.random.split(rng, 14)
+  r = UniformPool(rng, 8 * m + 16)
   deg = math.pi / 180.0
   max_turn = cfg.max_turn_deg * deg
-  u = lambda key, lo, hi, shape=(): jax.random.uniform(key, shape, minval=lo, maxval=hi)
 
-  probs = jnp.asarray(cfg.path_kind_probs, jnp.float32)
-  kind = jax.random.choice(keys[0], len(PATH_KINDS), p=probs / jnp.sum(probs))
-  h0 = u(keys[1], -math.pi, math.pi)
+  kind = r.categorical(jnp.asarray(cfg.path_kind_probs, jnp.float32))
+  h0 = r.uniform(-math.pi, math.pi)
 
-  turn_line = u(keys[2], -cfg.line_turn_deg * deg, cfg.line_turn_deg * deg, (m,))
-  circ_sign = jnp.where(jax.random.bernoulli(keys[3]), 1.0, -1.0)
-  turn_circle = circ_sign * u(keys[4], cfg.circle_turn_deg[0] * deg, cfg.circle_turn_deg[1] * deg) * jnp.ones(m)
-  poly_sign = jnp.where(jax.random.bernoulli(keys[5], shape=(m,)), 1.0, -1.0)
-  turn_poly = poly_sign * u(keys[6], cfg.polygon_turn_deg[0] * deg, cfg.polygon_turn_deg[1] * deg, (m,))
+  turn_line = r.uniform(-cfg.line_turn_deg * deg, cfg.line_turn_deg * deg, (m,))
+  turn_circle = r.sign() * r.uniform(cfg.circle_turn_deg[0] * deg, cfg.circle_turn_deg[1] * deg) * jnp.ones(m)
+  turn_poly = r.sign((m,)) * r.uniform(cfg.polygon_turn_deg[0] * deg, cfg.polygon_turn_deg[1] * deg, (m,))
   turns = jnp.stack([turn_line, turn_circle, turn_poly])[kind]
   turns = jnp.clip(turns, -max_turn, max_turn).at[0].set(0.0)
   heading = h0 + jnp.cumsum(turns)
 
-  leg_rand = u(keys[7], cfg.leg_length[0], cfg.leg_length[1], (m,))
-  leg_const = u(keys[8], cfg.leg_length[0], cfg.leg_length[1]) * jnp.ones(m)
+  leg_rand = r.uniform(cfg.leg_length[0], cfg.leg_length[1], (m,))
+  leg_const = r.uniform(cfg.leg_length[0], cfg.leg_length[1]) * jnp.ones(m)
   legs = jnp.where(kind == 1, leg_const, leg_rand)
   home = jnp.zeros(3)
   xy = home[:2] + jnp.cumsum(legs[:, None] * jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1), axis=0)
 
+  alt = r.uniform(cfg.altitude[0], cfg.altitude[1], (m,))
+  takeoff_alt = r.uniform(cfg.altitude[0], cfg.altitude[1])
   if cfg.is_rover:
-    alt = jnp.zeros(m)
-    takeoff_alt = jnp.zeros(())
-  else:
-    alt = u(keys[9], cfg.altitude[0], cfg.altitude[1], (m,))
-    takeoff_alt = u(keys[10], cfg.altitude[0], cfg.altitude[1])
+    alt, takeoff_alt = jnp.zeros(m), jnp.zeros(())
   waypoints = jnp.concatenate([xy, alt[:, None]], axis=-1)
 
-  sub = jax.random.split(keys[11], 6)
-  cruise = u(sub[0], cfg.cruise_speed[0], cfg.cruise_speed[1])
-  loiter_on = jax.random.bernoulli(sub[1], cfg.p_loiter) & (not cfg.is_rover)
-  loiter_time = jnp.where(loiter_on, u(sub[2], cfg.loiter_time[0], cfg.loiter_time[1]), 0.0)
-  land = jnp.where(jax.random.bernoulli(sub[3], cfg.p_land) & (not cfg.is_rover), 1.0, 0.0)
+  cruise = r.uniform(cfg.cruise_speed[0], cfg.cruise_speed[1])
+  loiter_on = r.bernoulli(cfg.p_loiter) & (not cfg.is_rover)
+  loiter_time = jnp.where(loiter_on, r.uniform(cfg.loiter_time[0], cfg.loiter_time[1]), 0.0)
+  land = jnp.where(r.bernoulli(cfg.p_land) & (not cfg.is_rover), 1.0, 0.0)
+  loiter_u = r.take()
 
   # Number of waypoints: requested count, raised (up to MAX_WAYPOINTS) to reach min_duration_s, then lowered
   # (down to 1) to respect max_duration_s. Candidate durations with k = 1..M waypoints (the loiter, placed below,
@@ -227,7 +263,7 @@ def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   loiter_on = loiter_on & (dur_k[0] + loiter_time <= cfg.max_duration_s)
   loiter_time = jnp.where(loiter_on, loiter_time, 0.0)
   dur_k = dur_k + loiter_time
-  n_req = jax.random.randint(keys[12], (), cfg.n_waypoints[0], cfg.n_waypoints[1] + 1)
+  n_req = r.randint(cfg.n_waypoints[0], cfg.n_waypoints[1])
   long_enough = dur_k >= cfg.min_duration_s
   n_min = jnp.where(jnp.any(long_enough), jnp.argmax(long_enough) + 1, m)
   n_max = jnp.maximum(jnp.sum(dur_k <= cfg.max_duration_s), 1)  # dur_k is increasing in k
@@ -238,7 +274,7 @@ def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   wp0_short = jnp.concatenate([home[:2] + shrink * (waypoints[0, :2] - home[:2]), takeoff_alt[None]])
   waypoints = waypoints.at[0].set(jnp.where(dur_k[0] > cfg.max_duration_s, wp0_short, waypoints[0]))
 
-  loiter_wp = jnp.where(loiter_on, jnp.floor(u(sub[4], 0.0, 1.0) * n).astype(jnp.int32), -1)
+  loiter_wp = jnp.where(loiter_on, jnp.floor(loiter_u * n).astype(jnp.int32), -1)
   loiter_wp = jnp.minimum(loiter_wp, n - 1)
   waypoints = _pad_waypoints(waypoints, n)
   window_open, deadline, duration = mission_timing(home, waypoints, n, takeoff_alt, cruise, loiter_wp, loiter_time,
