@@ -144,7 +144,7 @@ class RAVEnv(Env):
     episode = {
         "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
         "stall": jnp.zeros(()), "complete": jnp.zeros(()), "nan": jnp.zeros(()),
-        "best_dist": signals["dist_wp"], "last_progress": jnp.zeros(()), "progress_key": jnp.zeros((), jnp.int32),
+        "best_dist": self._goal_distance(mission, truth, nav), "last_progress": jnp.zeros(()), "progress_key": jnp.zeros((), jnp.int32),
         "min_obstacle_distance": signals["obstacle_distance"], "min_fence_margin": signals["fence_margin"],
     }
     info = {
@@ -166,7 +166,7 @@ class RAVEnv(Env):
     def tick(carry, key):
       data, sim, min_obs = carry
       data, sim = self._tick(data, sim, mission, world, override_vel, override, key)
-      d_obs = worlds_lib.obstacle_distance(world, self._query_pos(sim["truth"].pos))
+      d_obs = worlds_lib.obstacle_sdf(world, self._query_pos(sim["truth"].pos))
       return (data, sim, jnp.minimum(min_obs, d_obs)), None
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
@@ -185,8 +185,9 @@ class RAVEnv(Env):
     # Stall: no 1 m of progress towards the current target within stall_s (loiter and done excluded).
     key = nav.target * 8 + nav.phase
     new_key = key != ep["progress_key"]
-    improved = signals["dist_wp"] < ep["best_dist"] - 1.0
-    best = jnp.where(new_key | improved, signals["dist_wp"], ep["best_dist"])
+    goal_dist = self._goal_distance(mission, truth, nav)
+    improved = goal_dist < ep["best_dist"] - 1.0
+    best = jnp.where(new_key | improved, goal_dist, ep["best_dist"])
     last_prog = jnp.where(new_key | improved, t, ep["last_progress"])
     moving_phase = (nav.phase != nav_lib.LOITER) & (nav.phase != nav_lib.DONE)
     stall = moving_phase & (t - last_prog > self.config.stall_s) & finite
@@ -297,6 +298,13 @@ class RAVEnv(Env):
     }
     return {k: jnp.asarray(v, jnp.float32) for k, v in s.items()}
 
+  def _goal_distance(self, mission, truth, nav):
+    """Distance (m) to what the navigator is heading for: take-off point, target waypoint or landing point."""
+    wp = mission.waypoints[nav.target]
+    goal = jnp.where(nav.phase == nav_lib.TAKEOFF, mission.home.at[2].set(mission.takeoff_alt), wp)
+    goal = jnp.where(nav.phase == nav_lib.DESCENT, wp.at[2].set(0.0), goal)
+    return jnp.linalg.norm(self._query_pos(goal) - self._query_pos(truth.pos))
+
   def _observation(self, world, mission, sim) -> jax.Array:
     """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
     target waypoint, velocity, acceleration, Euler angles) + mission context: direction of the next leg [3],
@@ -311,7 +319,7 @@ class RAVEnv(Env):
     leg_next = leg_next / (jnp.linalg.norm(leg_next) + 1e-6)
     acc = math3d.quat_to_rot(ekf.quat) @ (readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
     qpos = self._query_pos(pos)
-    d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_distance(world, p))(qpos)
+    d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_sdf(world, p))(qpos)
     q = worlds_lib.world_queries(world, mission, qpos, nav.target)
     obs = jnp.concatenate([
         pos - target, ekf.vel, acc, ekf_lib.ekf_euler(ekf), leg_next, -g_obs,
