@@ -7,9 +7,10 @@ the family's maximum) and the sigmoid family / k (see `specguard_jax.rewards`).
 
 Choices (for docs/DESIGN.md):
   * Phase guards use `implies`: S3 (min altitude) excludes take-off and landing, S7 (min speed) applies in cruise only,
-    S9 in landing, S10 in take-off, S11 in loiter, S5 in cruise. A guard `in_x > 0.5` has robustness +-0.5, so the
-    episode robustness of a guarded spec is max(-0.5, .) when violated: the sign (verdict) is exact, the size of a
-    violation is capped at 0.5.
+    S9 in landing, S10 in take-off, S11 in loiter, S5 in cruise. The 0/1 phase indicators are compared with a big-M
+    scale, `(1000*in_cruise > 500)` rather than `(in_cruise > 0.5)`: the guard's robustness is then +-500 instead of
+    +-0.5, so `guard -> body` has exactly the body's robustness while the phase is on (and >= 500 while it is off),
+    and the episode robustness of a guarded spec is the body's worst margin over the phase, not a value capped at 0.5.
   * S5 (waypoints in their time windows, F_[ti,tj](dist_wp < R) per waypoint in the paper) is written over the env's
     per-mission `wp_slack` so one fixed formula serves every mission:  G(cruise -> (wp_slack > 0 or dist_wp < R)):
     at every cruise instant either the current waypoint's deadline has not passed or the vehicle is within R of it.
@@ -152,35 +153,46 @@ def _spec_rows(rows) -> Tuple[Spec, ...]:
   return tuple(Spec(*r) for r in rows)
 
 
-_CRUISE = "in_cruise > 0.5"
+
+
+def _on(phase: str) -> str:
+  """Guard 'phase indicator(s) on', big-M scaled (see module docstring)."""
+  return f"(1000*{phase} > 500)"
+
+
+def _off(phase: str) -> str:
+  return f"(1000*({phase}) < 500)"
+
+
+_CRUISE = _on("in_cruise")
 _DRONE_ROWS = (
     ("S1", "Avoid collisions", "always(obstacle_distance > CP_DIST)", True, "two_sided", 1.0,
      ("obstacle_distance",), "CP_DIST"),
     ("S2", "Do not veer off a boundary", "always(path_deviation < NAV_MC_POS_TH)", True, "keep_below", 0.5,
      ("path_deviation",), "NAV_MC_POS_TH"),
     ("S3", "Maintain minimum altitude",
-     "always((in_takeoff + in_landing < 0.5) -> (altitude > NAV_MIN_LTR_ALT))", False, "keep_above", 0.5,
-     ("altitude",), "NAV_MIN_LTR_ALT", "in_takeoff + in_landing < 0.5"),
+     f"always({_off('in_takeoff + in_landing')} -> (altitude > NAV_MIN_LTR_ALT))", False, "keep_above", 0.5,
+     ("altitude",), "NAV_MIN_LTR_ALT", _off("in_takeoff + in_landing")),
     ("S4", "Maintain maximum altitude", "always(altitude < MIS_TAKEOFF_ALT)", False, "keep_below", 0.5,
      ("altitude",), "MIS_TAKEOFF_ALT"),
     ("S5", "Navigate through waypoints",
-     f"always(({_CRUISE}) -> (wp_slack > 0 or dist_wp < NAV_ACC_RAD))", False, "keep_below", 0.25,
+     f"always({_CRUISE} -> (wp_slack > 0 or dist_wp < NAV_ACC_RAD))", False, "keep_below", 0.25,
      ("dist_wp",), "NAV_ACC_RAD", _CRUISE),
     ("S6", "Maintain distance from obstacle", "always(obstacle_distance > CP_DIST)", False, "s6", 0.5,
      ("obstacle_distance",), "CP_DIST"),
     ("S7", "Maintain minimum velocity",
-     f"always(({_CRUISE}) -> eventually[0s, SG_ACCEL_TIME s]((speed_xy > MPC_XY_VEL_MIN) or "
-     "(dist_wp < SG_TURN_DIST) or (in_cruise < 0.5)))", False, "keep_above", 1.0,
-     ("speed_xy",), "MPC_XY_VEL_MIN", f"{_CRUISE} and dist_wp > SG_TURN_DIST"),
+     f"always({_CRUISE} -> eventually[0s, SG_ACCEL_TIME s]((speed_xy > MPC_XY_VEL_MIN) or "
+     f"(dist_wp < SG_TURN_DIST) or {_off('in_cruise')}))", False, "keep_above", 1.0,
+     ("speed_xy",), "MPC_XY_VEL_MIN", f"{_CRUISE} and (dist_wp > SG_TURN_DIST)"),
     ("S8", "Maintain maximum velocity", "always(speed_xy < MPC_XY_VEL_MAX)", False, "keep_below", 1.0,
      ("speed_xy",), "MPC_XY_VEL_MAX"),
-    ("S9", "Precision landing", "always((in_landing > 0.5) -> (descent_speed <= MPC_LAND_SPEED))", False,
-     "keep_below", 8.0, ("descent_speed",), "MPC_LAND_SPEED", "in_landing > 0.5"),
+    ("S9", "Precision landing", f"always({_on('in_landing')} -> (descent_speed <= MPC_LAND_SPEED))", False,
+     "keep_below", 8.0, ("descent_speed",), "MPC_LAND_SPEED", _on("in_landing")),
     ("S10", "Takeoff speed",
-     "always((in_takeoff > 0.5) -> eventually[0s, SG_ACCEL_TIME s]((speed_z >= MPC_TKO_SPEED) or "
-     "(in_takeoff < 0.5)))", False, "keep_above", 2.0, ("speed_z",), "MPC_TKO_SPEED", "in_takeoff > 0.5"),
-    ("S11", "Maintain loiter radius", "always((in_loiter > 0.5) -> (loiter_deviation < NAV_MC_ALT_RADIUS))", False,
-     "keep_below", 0.5, ("loiter_deviation",), "NAV_MC_ALT_RADIUS", "in_loiter > 0.5"),
+     f"always({_on('in_takeoff')} -> eventually[0s, SG_ACCEL_TIME s]((speed_z >= MPC_TKO_SPEED) or "
+     f"{_off('in_takeoff')}))", False, "keep_above", 2.0, ("speed_z",), "MPC_TKO_SPEED", _on("in_takeoff")),
+    ("S11", "Maintain loiter radius", f"always({_on('in_loiter')} -> (loiter_deviation < NAV_MC_ALT_RADIUS))", False,
+     "keep_below", 0.5, ("loiter_deviation",), "NAV_MC_ALT_RADIUS", _on("in_loiter")),
     ("S12", "Stay within geofence", "always(fence_margin > SG_GF_MARGIN)", True, "fence_hv", 0.5,
      ("fence_h", "fence_v"), "SG_GF_MARGIN"),
 )
@@ -191,14 +203,14 @@ _ROVER_ROWS = (
     ("S2", "Do not veer off a boundary", "always(path_deviation < SG_POS_TH)", True, "keep_below", 0.5,
      ("path_deviation",), "SG_POS_TH"),
     ("S5", "Navigate through waypoints",
-     f"always(({_CRUISE}) -> (wp_slack > 0 or dist_wp < WPNAV_RADIUS))", False, "keep_below", 0.25,
+     f"always({_CRUISE} -> (wp_slack > 0 or dist_wp < WPNAV_RADIUS))", False, "keep_below", 0.25,
      ("dist_wp",), "WPNAV_RADIUS", _CRUISE),
     ("S6", "Maintain distance from obstacle", "always(obstacle_distance > AVOID_MARGIN)", False, "s6", 0.5,
      ("obstacle_distance",), "AVOID_MARGIN"),
     ("S7", "Maintain minimum velocity",
-     f"always(({_CRUISE}) -> eventually[0s, SG_ACCEL_TIME s]((speed_xy > CRUISE_SPEED_MIN) or "
-     "(dist_wp < SG_TURN_DIST) or (in_cruise < 0.5)))", False, "keep_above", 1.0,
-     ("speed_xy",), "CRUISE_SPEED_MIN", f"{_CRUISE} and dist_wp > SG_TURN_DIST"),
+     f"always({_CRUISE} -> eventually[0s, SG_ACCEL_TIME s]((speed_xy > CRUISE_SPEED_MIN) or "
+     f"(dist_wp < SG_TURN_DIST) or {_off('in_cruise')}))", False, "keep_above", 1.0,
+     ("speed_xy",), "CRUISE_SPEED_MIN", f"{_CRUISE} and (dist_wp > SG_TURN_DIST)"),
     ("S8", "Maintain maximum velocity", "always(speed_xy < CRUISE_SPEED_MAX)", False, "keep_below", 1.0,
      ("speed_xy",), "CRUISE_SPEED_MAX"),
     ("S12", "Stay within geofence", "always(fence_margin > FENCE_MARGIN)", True, "fence", 0.5,
