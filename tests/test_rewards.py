@@ -1,0 +1,116 @@
+"""Reward families (bounded, monotone, continuous, paper-equation sample points) and the per-step table reward."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from specguard_jax import rewards, specs
+from specguard_jax.rewards import families as fam
+from specguard_jax.signals import SIGNAL_NAMES
+
+A, K = 5.0, 1.0
+GRID = np.linspace(-100, 100, 20001, dtype=np.float32)  # condition values f, threshold A
+SINGLE = {"keep_above": (fam.keep_above, 1), "keep_below": (fam.keep_below, -1), "two_sided": (fam.two_sided, 1),
+          "s6": (fam.s6, 1), "fence": (fam.fence, 1)}
+
+
+@pytest.mark.parametrize("name", sorted(SINGLE))
+def test_bounded_monotone_continuous(name):
+  fn, direction = SINGLE[name]
+  r = np.asarray(fn(GRID, A, K))
+  lo = -1.0 if name == "two_sided" else 0.0
+  assert np.all(r >= lo) and np.all(r <= 1.0) and np.all(np.isfinite(r))
+  d = np.diff(r) * direction
+  assert np.all(d >= 0)  # monotone non-decreasing in the margin
+  mid = np.abs(GRID - A) < 10
+  assert np.all(d[mid[:-1]] > 0)  # strictly increasing near the threshold
+  eps = 1e-3
+  jump = abs(float(fn(A + eps, A, K)) - float(fn(A - eps, A, K)))
+  assert jump < 2 * K * eps  # continuous (Lipschitz k/2 for sigma, k for two_sided)
+  assert float(fn(A, A, K)) == (0.0 if name == "two_sided" else 0.5)
+
+
+def test_fence_hv_bounded_monotone_in_each_margin():
+  h = GRID[::50]
+  for v in (-3.0, 1.0, 4.0):
+    r = np.asarray(fam.fence_hv(h, v, 1.0, 0.5))
+    assert np.all((r >= 0) & (r <= 1)) and np.all(np.diff(r) >= 0)
+  assert np.asarray(fam.fence_hv(20.0, 20.0, 1.0, 0.5)) > 0.99
+  assert np.asarray(fam.fence_hv(20.0, -5.0, 1.0, 0.5)) < 0.05  # one bad margin is enough to lose the reward
+
+
+# sample points on the side where each printed equation has its sigmoid branch (there we match it exactly)
+@pytest.mark.parametrize("spec_id,fn,points", [
+    ("S1", fam.two_sided, [0.5, 2.0, 4.0, 4.9]),
+    ("S2", fam.keep_below, [0.5, 2.0, 4.9]), ("S5", fam.keep_below, [1.0, 3.0]),
+    ("S4", fam.keep_below, [-2.0, 1.0, 4.5]), ("S8", fam.keep_below, [0.0, 4.0]),
+    ("S3", fam.keep_above, [5.1, 7.0, 30.0]), ("S7", fam.keep_above, [6.0, 9.0]),
+    ("S6", fam.s6, [0.5, 3.0, 4.9]),
+])
+def test_matches_paper_equations_at_sample_points(spec_id, fn, points):
+  f = np.array(points, np.float32)
+  np.testing.assert_allclose(fn(f, A, K), fam.paper_equation(spec_id, f, A, K), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("spec_id,fn", [("S1", fam.two_sided), ("S2", fam.keep_below), ("S3", fam.keep_above),
+                                        ("S6", fam.s6), ("S8", fam.keep_below)])
+def test_constant_branch_is_approached(spec_id, fn):
+  """Away from the threshold our continuous forms tend to the printed constant branch."""
+  f = np.array([A - 8.0 / K, A + 8.0 / K], np.float32)
+  f = f[np.isfinite(np.asarray(fam.paper_equation(spec_id, f, A, K)))]
+  np.testing.assert_allclose(fn(f, A, K), fam.paper_equation(spec_id, f, A, K), atol=2e-3)
+
+
+def test_deviations_from_printed_equations():
+  # S9 (land speed <= a) rewards slow descent, S10 (climb >= a) fast climb, S11 (stay within radius) small deviation
+  d = specs.drone_specs()
+  assert (d["S9"].family, d["S10"].family, d["S11"].family) == ("keep_below", "keep_above", "keep_below")
+  # printed S12 (drone) is one repeated factor decreasing in the margin; ours increases in both margins
+  assert fam.paper_equation("S12", 10.0, 1.0, 0.5, v=10.0) < fam.paper_equation("S12", 2.0, 1.0, 0.5, v=10.0)
+  assert fam.fence_hv(10.0, 10.0, 1.0, 0.5) > fam.fence_hv(2.0, 10.0, 1.0, 0.5)
+  assert fam.fence(10.0, 1.0, 0.5) > fam.fence(2.0, 1.0, 0.5)
+
+
+def _signals(n=()):
+  s = {k: jnp.full(n, 1.0) for k in SIGNAL_NAMES}
+  s.update(obstacle_distance=jnp.full(n, 20.0), altitude=jnp.full(n, 15.0), speed_xy=jnp.full(n, 8.0),
+           in_takeoff=jnp.zeros(n), in_landing=jnp.zeros(n), in_loiter=jnp.zeros(n), in_cruise=jnp.ones(n),
+           dist_wp=jnp.full(n, 3.0), wp_slack=jnp.full(n, 5.0), fence_margin=jnp.full(n, 5.0),
+           fence_h=jnp.full(n, 20.0), fence_v=jnp.full(n, 5.0), path_deviation=jnp.full(n, 1.0))
+  return s
+
+
+def test_table_reward_shapes_guards_weights():
+  d = specs.drone_specs()
+  total, per = rewards.reward(_signals((4, 3)), d)
+  assert total.shape == (4, 3) and per.shape == (4, 3, 12)
+  per = np.asarray(per)[0, 0]
+  names = d.names
+  for guarded in ("S9", "S10", "S11"):  # phase off -> vacuously satisfied -> family maximum
+    assert per[names.index(guarded)] == 1.0
+  np.testing.assert_allclose(per[names.index("S1")], fam.two_sided(20.0, 5.0, 1.0), rtol=1e-6)
+  np.testing.assert_allclose(per[names.index("S12")], fam.fence_hv(20.0, 5.0, 1.0, 0.5), rtol=1e-6)
+  t1, p1 = rewards.reward(_signals(), d, normalize=True, critical_weight=3.0)
+  w = np.array([3.0 if c else 1.0 for c in d.critical])
+  np.testing.assert_allclose(t1, (np.asarray(p1) * w).sum() / w.sum(), rtol=1e-6)
+  assert float(t1) <= 1.0
+  # jit with the table static, and gradients flow to the signals
+  f = jax.jit(lambda s: rewards.RewardFn.create(d)(s, normalize=True)[0])
+  np.testing.assert_allclose(f(_signals()), rewards.reward(_signals(), d, normalize=True)[0], rtol=1e-6)
+  g = jax.grad(lambda x: rewards.reward({**_signals(), "obstacle_distance": x}, d)[0])(4.0)
+  assert g > 0
+
+
+def test_binary_baseline():
+  d = specs.drone_specs()
+  s = _signals()
+  total, per = rewards.binary_reward(s, d)
+  assert set(np.unique(np.asarray(per))) <= {0.0, 1.0} and float(total) == 12.0
+  s_bad = {**s, "obstacle_distance": jnp.array(3.0), "wp_slack": jnp.array(-1.0), "dist_wp": jnp.array(9.0)}
+  _, per = rewards.binary_reward(s_bad, d)
+  bad = {n for n, v in zip(d.names, np.asarray(per)) if v == 0}
+  assert bad == {"S1", "S5", "S6"}
+  s_land = {**s, "in_cruise": jnp.array(0.0), "in_landing": jnp.array(1.0), "descent_speed": jnp.array(0.9)}
+  _, per = rewards.binary_reward(s_land, d)
+  assert {n for n, v in zip(d.names, np.asarray(per)) if v == 0} == {"S9"}
