@@ -91,6 +91,7 @@ def test_matches_rtamt_on_random_formulas(text, t, seed):
   """Max abs difference to rtamt <= 1e-5 at every index, for 3 traces per formula (batched in one call)."""
   sig = random_traces(seed, 3, t)
   ours = np.asarray(stl.robustness(text, {k: jnp.asarray(v) for k, v in sig.items()}))
+  np.testing.assert_array_equal(stl.episode_robustness(text, sig), ours[:, 0])
   for b in range(3):
     ref = rtamt_eval(text, {k: v[b].astype(np.float64) for k, v in sig.items()})
     assert_close(ours[b], ref)

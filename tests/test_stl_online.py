@@ -35,6 +35,10 @@ def check(text, t=24, n=4, seed=0):
                                      length=np.arange(1, t + 1)[:, None]))[..., 0]
   np.testing.assert_allclose(online, prefix, rtol=0, atol=1e-5)
   final = np.asarray(stl.robustness(text, sig, dt=0.5))[:, 0]
+  np.testing.assert_array_equal(stl.episode_robustness(text, sig, dt=0.5), final)
+  np.testing.assert_array_equal(
+      stl.episode_robustness(text, {k: v[None] for k, v in sig.items()}, dt=0.5, length=np.arange(1, t + 1)[:, None]),
+      prefix)
   np.testing.assert_allclose(online[-1], final, rtol=0, atol=1e-5)  # final verdict == whole-trace offline
   mid = np.asarray(stl.robustness(text, {k: v[:, :7] for k, v in sig.items()}, dt=0.5))[:, 0]
   np.testing.assert_allclose(online[6], mid, rtol=0, atol=1e-5)

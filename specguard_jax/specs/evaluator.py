@@ -46,7 +46,7 @@ class SpecEvaluator:
 
     signals: {name: [..., T]} (extra names are ignored); length: optional [...] episode lengths (ragged batches).
     """
-    outs = [stl.robustness(f, signals, length=length)[..., 0] for f in self.formulas]
+    outs = [stl.episode_robustness(f, signals, length=length) for f in self.formulas]
     shape = jnp.broadcast_shapes(*[o.shape for o in outs])
     rob = jnp.stack([jnp.broadcast_to(o, shape) for o in outs], axis=-1)
     return rob, rob < 0

@@ -2,6 +2,7 @@
 
   parse(text, params=None, signals=None) -> Formula
   robustness(formula_or_text, signals: {name: [..., T]}, dt=None, length=None) -> [..., T]
+  episode_robustness(formula_or_text, signals, dt=None, length=None) -> [...]  (== robustness(...)[..., 0], cheaper)
   OnlineMonitor(formula, dt=None) ; monitor_init(formula, batch_shape, dt=None) ; monitor_update(formula, state, x_t)
 Intervals without a unit are control steps; with 's'/'ms' they are seconds, converted with an explicit dt.
 """
@@ -10,6 +11,6 @@ from specguard_jax.stl.ast import (Always, And, Eventually, Formula, Implies, In
                                    horizon, is_temporal, signals_of, to_steps)
 from specguard_jax.stl.errors import (IntervalError, STLError, STLSyntaxError, UnknownSignalError,
                                       UnsupportedOnlineError)
-from specguard_jax.stl.offline import robustness
+from specguard_jax.stl.offline import episode_robustness, robustness
 from specguard_jax.stl.online import MonitorState, OnlineMonitor, monitor_init, monitor_update
 from specguard_jax.stl.parser import parse

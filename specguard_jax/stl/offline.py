@@ -97,3 +97,44 @@ def robustness(formula: Union[str, ast.Formula], signals: Mapping[str, jnp.ndarr
     out = evaluate(f, sig, valid)
     return jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape))
   return evaluate(f, sig, valid)
+
+
+def evaluate_at0(f: ast.Formula, sig: Mapping[str, jnp.ndarray], valid: Optional[jnp.ndarray] = None) -> jnp.ndarray:
+  """Robustness at index 0 only ([...]): top-level always/eventually become plain reductions instead of scans."""
+  if isinstance(f, ast.Predicate):
+    return predicate_value(f, {n: v[..., 0] for n, v in sig.items()})
+  if isinstance(f, ast.Not):
+    return -evaluate_at0(f.arg, sig, valid)
+  if isinstance(f, (ast.And, ast.Or, ast.Implies)):
+    a, b = evaluate_at0(f.left, sig, valid), evaluate_at0(f.right, sig, valid)
+    if isinstance(f, ast.And):
+      return jnp.minimum(a, b)
+    return jnp.maximum(a, b) if isinstance(f, ast.Or) else jnp.maximum(-a, b)
+  if isinstance(f, (ast.Always, ast.Eventually)):
+    red, fill = (jnp.min, jnp.inf) if isinstance(f, ast.Always) else (jnp.max, -jnp.inf)
+    x = evaluate(f.arg, sig, valid)
+    if valid is not None:
+      x = jnp.where(valid, x, fill)
+    if f.interval is not None:
+      lo, hi = int(f.interval.lo), int(f.interval.hi)
+      x = x[..., lo:hi + 1]
+      if x.shape[-1] == 0:
+        return jnp.full(x.shape[:-1], fill, x.dtype)
+    return red(x, axis=-1)
+  return evaluate(f, sig, valid)[..., 0]
+
+
+def episode_robustness(formula: Union[str, ast.Formula], signals: Mapping[str, jnp.ndarray],
+                       dt: Optional[float] = None, length: Optional[jnp.ndarray] = None, params=None) -> jnp.ndarray:
+  """Robustness of whole episodes at time 0, [...]: equals robustness(...)[..., 0], computed with reductions where
+  possible (top-level always/eventually), so it is cheaper than the every-index form."""
+  f = as_formula(formula, dt, params)
+  sig = stack_signals(f, signals)
+  valid = None
+  if length is not None:
+    t = next(iter(sig.values())).shape[-1]
+    valid = jnp.arange(t) < jnp.asarray(length)[..., None]
+  out = evaluate_at0(f, sig, valid)
+  if valid is not None:
+    out = jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape[:-1]))
+  return out
