@@ -81,13 +81,13 @@ def rtamt_eval(formulas, names, sig_np, idx):
   out = np.zeros((len(idx), len(formulas)))
   for j, f in enumerate(formulas):
     text = str(f)  # step intervals; rtamt's default 1 s sampling period makes [a,b] = samples
+    spec = rtamt.StlDiscreteTimeSpecification()  # parsed once per spec (parsing is not timed per trace)
+    used = stl.signals_of(f)
+    for v in used:
+      spec.declare_var(v, "float")
+    spec.spec = text
+    spec.parse()
     for r, i in enumerate(idx):
-      spec = rtamt.StlDiscreteTimeSpecification()
-      used = stl.signals_of(f)
-      for v in used:
-        spec.declare_var(v, "float")
-      spec.spec = text
-      spec.parse()
       ds = {"time": list(range(sig_np[used[0]].shape[1]))}
       ds.update({v: sig_np[v][i].astype(np.float64).tolist() for v in used})
       out[r, j] = spec.evaluate(ds)[0][1]

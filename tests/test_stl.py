@@ -1,7 +1,5 @@
 """STL engine: parser errors, window kernels, and property tests against rtamt (the oracle) on random formulas."""
 
-import math
-
 import hypothesis.strategies as st
 import jax
 import jax.numpy as jnp

@@ -8,13 +8,12 @@ is < 0.
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping, Optional, Sequence, Tuple
+from typing import Mapping, Sequence, Tuple
 
 import jax.numpy as jnp
 
 from specguard_jax import stl
 from specguard_jax.specs.table import SpecTable
-from specguard_jax.stl.offline import evaluate, stack_signals
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,7 +34,7 @@ import json
 import math
 import os
 import re
-from typing import Dict, Iterable, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 from specguard_jax import stl
 from specguard_jax.signals import SIGNAL_NAMES

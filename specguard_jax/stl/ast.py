@@ -172,7 +172,7 @@ def _steps(v: float, dt: float, what: str) -> int:
 
 
 def to_steps(f: Formula, dt: Optional[float] = None) -> Formula:
-  """Return `f` with every interval converted to control steps (`dt` seconds per step; needed only for "s" intervals)."""
+  """Return `f` with every interval in control steps (`dt`: seconds per step, needed only for "s" intervals)."""
   if isinstance(f, Predicate):
     return f
   iv = getattr(f, "interval", None)

@@ -2,7 +2,7 @@
 
 After n updates, the returned value equals `robustness(formula, trace[:n])[..., 0]` (offline, truncated semantics).
 Supported fragment: any boolean combination (not/and/or/implies) of
-  * bounded sub-formulas (every operator has an interval)             -> kept in a prefix buffer of the first h+1 samples;
+  * bounded sub-formulas (every operator has an interval)            -> a prefix buffer of the first h+1 samples;
   * `always(psi)`, `eventually(psi)` with psi bounded (horizon h)      -> running min/max of finalised values plus the
     still-open last h positions, recomputed each step from a sliding buffer of the last h+1 samples;
   * `psi1 until psi2` (unbounded) with bounded psi1, psi2              -> running (min l, best) pair plus the open tail.

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Dict, Iterable, List, Mapping, Optional, Tuple
+from typing import Iterable, List, Mapping, Optional, Tuple
 
 from specguard_jax.stl import ast
 from specguard_jax.stl.errors import IntervalError, STLError, STLSyntaxError, UnknownSignalError

@@ -10,7 +10,6 @@ All windows look forward and are truncated at the trace end; an empty window yie
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -58,7 +57,7 @@ def _window_vhgw(y, w, op, fill):
 
 
 def window_reduce(x: jnp.ndarray, a: int, b: int, op, method: str = "auto") -> jnp.ndarray:
-  """out[..., i] = op over x[..., i+a .. i+b] truncated at the trace end (identity if empty); op = jnp.minimum/maximum."""
+  """out[..., i] = op(x[..., i+a .. i+b]) truncated at the trace end (identity if empty); op: jnp.minimum/maximum."""
   a, b = int(a), int(b)
   fill = _identity(op)
   t = x.shape[-1]
