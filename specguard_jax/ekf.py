@@ -20,6 +20,9 @@ Simplified vs EKF2:
   * 15 states: no magnetic-field/earth-field states (the magnetometer is a heading, fused like EKF2's yaw fusion), no
     wind, no terrain state (optical flow uses height above flat ground = estimated z), no baro bias state;
   * no delayed-time horizon / output predictor: measurements are fused at the tick they arrive (no sensor latency);
+  * all observations of one tick are linearised once at the predicted state and gated against the predicted P, then
+    fused one scalar at a time into an accumulated correction injected at the end (one fixed-length loop of 13
+    scalar rows per tick, cheap to compile and vmap); EKF2 fuses each sensor group against the then-current state;
   * GPS height and barometer are both fused directly (EKF2 fuses only the chosen height reference);
   * no GPS quality checks, no in-air/on-ground logic, no bias-learning inhibition;
   * rover: wheel-odometry forward speed and a non-holonomic pseudo-measurement (body lateral and vertical velocity
@@ -246,142 +249,128 @@ def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
     accel_bias=jnp.clip(s.accel_bias + dx[ABIAS], -cfg.accel_bias_limit, cfg.accel_bias_limit))
 
 
-def _predict_meas(s: EKFState, fn):
-  """Predicted measurement fn(pos, vel, R) -> [m] and its Jacobian H [m, 15] w.r.t. the error state."""
+# Scalar observation rows fused each tick: the 11 recorded CHANNELS, then the rover's non-holonomic pseudo-measurement.
+_ROWS = CHANNELS + ("nhc_y", "nhc_z")
+N_ROWS = len(_ROWS)
+# gate groups (EKF2 accepts/rejects these vector observations as a whole): GPS horizontal position, GPS height,
+# GPS velocity, baro, mag, flow, odometry, non-holonomic constraint
+_GROUP_OF_ROW = (0, 0, 1, 2, 2, 2, 3, 4, 5, 5, 6, 7, 7)
+_GROUPS = jnp.asarray([[float(g == k) for g in _GROUP_OF_ROW] for k in range(max(_GROUP_OF_ROW) + 1)])  # [8, 13]
+_MAG_ROW = CH["mag"]
+
+
+def _observe(cfg: EKFConfig, pos, vel, r):
+  """Predicted observation rows [13] (order `_ROWS`) from position, velocity and rotation body -> world."""
+  vb = r.T @ vel
+  flow = vb[:2] / jnp.maximum(pos[2], cfg.flow_min_height)
+  yaw = jnp.arctan2(r[1, 0], r[0, 0])
+  return jnp.concatenate([pos, vel, pos[2:3], yaw[None], flow, vb[0:1], vb[1:3]])
+
+
+def _linearise(cfg: EKFConfig, s: EKFState):
+  """Predicted observations [13] and their Jacobian H [13, 15] w.r.t. the error state (one forward-mode pass)."""
   r = quat_to_rot(s.quat)
 
   def h(dx):
-    rr = (jnp.eye(3) + _skew(dx[ATT])) @ r
-    return fn(s.pos + dx[POS], s.vel + dx[VEL], rr)
+    return _observe(cfg, s.pos + dx[POS], s.vel + dx[VEL], (jnp.eye(3) + _skew(dx[ATT])) @ r)
 
   dx0 = jnp.zeros(N_ERR)
   return h(dx0), jax.jacfwd(h)(dx0)
 
 
-def _fuse_group(cfg: EKFConfig, s: EKFState, fn, z, noise, gate, enable, angle=False):
-  """Gated sequential scalar fusion of a vector measurement z[m] (accepted or rejected as a whole).
+def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
+  """Gated sequential scalar fusion of all observation rows of one tick.
 
-  Returns (state, innov[m], test_ratio[m], accepted []) ; innovations and ratios use the pre-fusion state.
+  The rows are linearised once at the predicted state; gates use the predicted covariance; a group is rejected as a
+  whole if any of its rows fails its gate; accepted rows are fused one scalar at a time (Joseph form) into an
+  accumulated error-state correction that is injected into the nominal state at the end.
+  Returns (state, innov[13], test_ratio[13], accepted[13] bool).
   """
-  pred, H = _predict_meas(s, fn)
+  pred, H = _linearise(cfg, s)
   innov = z - pred
-  if angle:
-    innov = wrap_angle(innov)
+  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
   R = noise ** 2
   S = jnp.einsum("mi,ij,mj->m", H, s.P, H) + R
   ratio = innov ** 2 / (gate ** 2 * S)
   ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
-  accept = enable & jnp.all(ratio <= 1.0)
+  bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
+  group_bad = (_GROUPS @ bad) > 0
+  accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
 
-  new = s
-  for i in range(z.shape[0]):
-    pi, Hi = _predict_meas(new, lambda p, v, r: fn(p, v, r)[i:i + 1])
-    Hi = Hi[0]
-    yi = z[i] - pi[0]
-    if angle:
-      yi = wrap_angle(yi)
-    Ri = R[i]
-    PHt = new.P @ Hi
-    Si = Hi @ PHt + Ri
-    K = PHt / Si
-    IKH = jnp.eye(N_ERR) - jnp.outer(K, Hi)
-    P = IKH @ new.P @ IKH.T + Ri * jnp.outer(K, K)
-    new = _inject(cfg, new.replace(P=_condition(P)), K * yi)
-  new = _tree_where(accept, new, s)
-  return new, innov, ratio, accept
+  def body(i, carry):
+    P, dx = carry
+    hi = H[i]
+    pht = P @ hi
+    k = pht / (hi @ pht + R[i])
+    dx_new = dx + k * (innov[i] - hi @ dx)
+    ikh = jnp.eye(N_ERR) - jnp.outer(k, hi)
+    p_new = ikh @ P @ ikh.T + R[i] * jnp.outer(k, k)
+    return jnp.where(accept[i], p_new, P), jnp.where(accept[i], dx_new, dx)
+
+  P, dx = jax.lax.fori_loop(0, N_ROWS, body, (s.P, jnp.zeros(N_ERR)))
+  return _inject(cfg, s.replace(P=_condition(P)), dx), innov, ratio, accept
 
 
-def _record(s_rec: dict, idx, innov, ratio, accept, fresh):
-  """Stores channel results (held when the channel is not fresh)."""
+def _reset_block(P, idx, var, do):
+  """Where `do`: clears rows/columns `idx` of P and sets their variance to var."""
   idx = jnp.asarray(idx)
-  for key, val in (("innov", innov), ("test_ratio", ratio), ("accepted", jnp.broadcast_to(accept, innov.shape))):
-    s_rec[key] = s_rec[key].at[idx].set(jnp.where(fresh, val.astype(jnp.float32), s_rec[key][idx]))
-  s_rec["fresh"] = s_rec["fresh"].at[idx].set(jnp.broadcast_to(fresh, innov.shape).astype(jnp.float32))
+  mask = jnp.zeros(N_ERR, bool).at[idx].set(True) & do
+  P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
+  return P.at[idx, idx].set(jnp.where(do, var, P[idx, idx]))
 
 
 def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> EKFState:
   """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets."""
   s = _predict(cfg, state, readings.gyro, readings.accel, dt)
-  rec = dict(innov=state.innov, test_ratio=state.test_ratio, accepted=state.accepted,
-             fresh=jnp.zeros((N_CHANNELS,), jnp.float32))
+  f32 = jnp.float32
   gps = readings.gps_fresh > 0.5
-
-  # GPS velocity (3-D, one gate decision)
-  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: v, readings.gps_vel, jnp.full(3, cfg.gps_vel_noise),
-                             cfg.gps_vel_gate, gps)
-  _record(rec, [3, 4, 5], y, tr, ok, gps)
-  vel_ok = ok
-  # GPS horizontal position
-  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[:2], readings.gps_pos[:2], jnp.full(2, cfg.gps_pos_noise_h),
-                             cfg.gps_pos_gate, gps)
-  _record(rec, [0, 1], y, tr, ok, gps)
-  hpos_ok = ok
-  # GPS height
-  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[2:3], readings.gps_pos[2:3], jnp.full(1, cfg.gps_pos_noise_v),
-                             cfg.gps_pos_gate, gps & cfg.fuse_gps_height)
-  _record(rec, [2], y, tr, ok, gps)
-  hgt_ok = ok
-  # barometer
   baro = readings.baro_fresh > 0.5
-  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: p[2:3], readings.baro_alt[None], jnp.full(1, cfg.baro_noise),
-                             cfg.baro_gate, baro)
-  _record(rec, [6], y, tr, ok, baro)
-  hgt_ok = hgt_ok | ok
-  # magnetometer heading
   mag = readings.mag_fresh > 0.5
-  s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: jnp.arctan2(r[1, 0], r[0, 0])[None], readings.mag_yaw[None],
-                             jnp.full(1, cfg.mag_heading_noise), cfg.mag_gate, mag, angle=True)
-  _record(rec, [7], y, tr, ok, mag)
-  # optical flow: body horizontal velocity / height above flat ground
-  if cfg.use_flow:
-    flow = (readings.flow_fresh > 0.5) & (s.pos[2] >= cfg.flow_min_height)
-    hmin = cfg.flow_min_height
-    s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[:2] / jnp.maximum(p[2], hmin), readings.flow,
-                               jnp.full(2, cfg.flow_noise), cfg.flow_gate, flow)
-    _record(rec, [8, 9], y, tr, ok, flow)
-  # wheel odometry and non-holonomic constraint (rover)
-  if cfg.use_odom:
-    odom = readings.odom_fresh > 0.5
-    s, y, tr, ok = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[0:1], readings.odom_speed[None],
-                               jnp.full(1, cfg.odom_noise), cfg.odom_gate, odom)
-    _record(rec, [10], y, tr, ok, odom)
-    if cfg.use_nhc:
-      s, *_ = _fuse_group(cfg, s, lambda p, v, r: (r.T @ v)[1:3], jnp.zeros(2), jnp.full(2, cfg.nhc_noise),
-                          cfg.nhc_gate, odom)
+  flow = (readings.flow_fresh > 0.5) & (s.pos[2] >= cfg.flow_min_height) & cfg.use_flow
+  odom = (readings.odom_fresh > 0.5) & cfg.use_odom
+  nhc = (readings.odom_fresh > 0.5) & cfg.use_nhc
+  fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
+  enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
+  z = jnp.concatenate([readings.gps_pos, readings.gps_vel, readings.baro_alt[None], readings.mag_yaw[None],
+                       readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(f32)
+  noise = jnp.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
+                    + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
+                    + [cfg.nhc_noise] * 2, f32)
+  gate = jnp.array([cfg.gps_pos_gate] * 3 + [cfg.gps_vel_gate] * 3 + [cfg.baro_gate, cfg.mag_gate]
+                   + [cfg.flow_gate] * 2 + [cfg.odom_gate] + [cfg.nhc_gate] * 2, f32)
+  s, innov, ratio, accept = _fuse(cfg, s, z, noise, gate, enable)
+
+  # per-channel records (held while a channel is not fresh)
+  fc = fresh[:N_CHANNELS]
+  rec_innov = jnp.where(fc, innov[:N_CHANNELS], state.innov)
+  rec_ratio = jnp.where(fc, ratio[:N_CHANNELS], state.test_ratio)
+  rec_acc = jnp.where(fc, accept[:N_CHANNELS].astype(f32), state.accepted)
 
   # timeout bookkeeping and resets (EKF2: reset to the measurement after reset_timeout of rejected fusion)
+  hpos_ok = accept[0] & accept[1]
+  vel_ok = accept[3] & accept[4] & accept[5]
+  hgt_ok = accept[2] | accept[6]
   gps_pos_age = jnp.where(hpos_ok, 0.0, state.gps_pos_age + dt)
   gps_vel_age = jnp.where(vel_ok, 0.0, state.gps_vel_age + dt)
   hgt_age = jnp.where(hgt_ok, 0.0, state.hgt_age + dt)
   reset_pos = gps & (gps_pos_age > cfg.reset_timeout)
   reset_vel = gps & (gps_vel_age > cfg.reset_timeout)
   reset_hgt = baro & (hgt_age > cfg.reset_timeout)
-  P = s.P
-  pos, vel = s.pos, s.vel
-
-  def reset_block(P, idx, var, do):
-    idx = jnp.asarray(idx)
-    mask = jnp.zeros(N_ERR, bool).at[idx].set(True) & do
-    P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
-    return P.at[idx, idx].set(jnp.where(do, var, P[idx, idx]))
-
-  pos = jnp.where(reset_pos, pos.at[:2].set(readings.gps_pos[:2]), pos)
-  P = reset_block(P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
-  vel = jnp.where(reset_vel, readings.gps_vel, vel)
-  P = reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
+  pos = jnp.where(reset_pos, s.pos.at[:2].set(readings.gps_pos[:2]), s.pos)
   pos = jnp.where(reset_hgt, pos.at[2].set(readings.baro_alt), pos)
-  P = reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
+  vel = jnp.where(reset_vel, readings.gps_vel, s.vel)
+  P = _reset_block(s.P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
+  P = _reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
+  P = _reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
   any_reset = reset_pos | reset_vel | reset_hgt
 
-  pos = jnp.where(jnp.isfinite(pos), pos, 0.0)
-  vel = jnp.where(jnp.isfinite(vel), vel, 0.0)
   return s.replace(
-    pos=pos, vel=vel, P=_condition(P),
+    pos=jnp.where(jnp.isfinite(pos), pos, 0.0), vel=jnp.where(jnp.isfinite(vel), vel, 0.0), P=_condition(P),
     gps_pos_age=jnp.where(reset_pos, 0.0, gps_pos_age),
     gps_vel_age=jnp.where(reset_vel, 0.0, gps_vel_age),
     hgt_age=jnp.where(reset_hgt, 0.0, hgt_age),
-    innov=rec["innov"], test_ratio=rec["test_ratio"], accepted=rec["accepted"], fresh=rec["fresh"],
-    reset=any_reset.astype(jnp.float32), n_resets=state.n_resets + any_reset, time=state.time + dt)
+    innov=rec_innov, test_ratio=rec_ratio, accepted=rec_acc, fresh=fc.astype(f32),
+    reset=any_reset.astype(f32), n_resets=state.n_resets + any_reset, time=state.time + dt)
 
 
 # ----------------------------------------------------------------------------------------------------------------------

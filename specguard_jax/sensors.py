@@ -135,29 +135,33 @@ def check_rates(cfg: SensorConfig, dt: float) -> None:
       raise ValueError(f"{name}={rate} Hz does not divide the tick rate {tick_rate} Hz")
 
 
-def _measure(cfg: SensorConfig, truth: TrueState, gyro_bias, accel_bias, gps_drift, baro_drift, rng):
-  """Fresh samples of every sensor (no rate logic). Returns a SensorReadings with all fresh flags 1 (flow: validity)."""
-  k = jax.random.split(rng, 7)
+_N_MEAS_NOISE = 17  # standard-normal draws per _measure call
+
+
+def _measure(cfg: SensorConfig, truth: TrueState, gyro_bias, accel_bias, gps_drift, baro_drift, n):
+  """Fresh samples of every sensor (no rate logic) given n [17] standard-normal draws.
+
+  Returns a SensorReadings with all fresh flags 1 (flow: validity, odom: presence).
+  """
   f32 = jnp.float32
   r = quat_to_rot(truth.quat)
   vel_b = r.T @ truth.vel
   sig_p = jnp.array([cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_v], f32)
   sig_v = jnp.array([cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_v], f32)
-  gps_pos = truth.pos + gps_drift + sig_p * jax.random.normal(k[0], (3,))
-  gps_vel = truth.vel + sig_v * jax.random.normal(k[1], (3,))
-  gyro = truth.ang_vel + gyro_bias + cfg.gyro_sigma * jax.random.normal(k[2], (3,))
+  gps_pos = truth.pos + gps_drift + sig_p * n[0:3]
+  gps_vel = truth.vel + sig_v * n[3:6]
+  gyro = truth.ang_vel + gyro_bias + cfg.gyro_sigma * n[6:9]
   g = jnp.array([0.0, 0.0, -GRAVITY], f32)
-  accel = r.T @ (truth.acc - g) + accel_bias + cfg.accel_sigma * jax.random.normal(k[3], (3,))
+  accel = r.T @ (truth.acc - g) + accel_bias + cfg.accel_sigma * n[9:12]
   gyro = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE)
   accel = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE)
-  mag_yaw = wrap_angle(quat_yaw(truth.quat) + cfg.mag_sigma * jax.random.normal(k[4], ()))
+  mag_yaw = wrap_angle(quat_yaw(truth.quat) + cfg.mag_sigma * n[12])
   height = truth.pos[2]
-  baro_alt = height + baro_drift + cfg.baro_sigma * jax.random.normal(k[5], ())
-  kf, ko = jax.random.split(k[6])
+  baro_alt = height + baro_drift + cfg.baro_sigma * n[13]
   flow_valid = height >= cfg.flow_min_height
-  flow = vel_b[:2] / jnp.maximum(height, cfg.flow_min_height) + cfg.flow_sigma * jax.random.normal(kf, (2,))
+  flow = vel_b[:2] / jnp.maximum(height, cfg.flow_min_height) + cfg.flow_sigma * n[14:16]
   flow = jnp.where(flow_valid & cfg.has_flow, flow, 0.0)
-  odom = jnp.where(cfg.has_odom, vel_b[0] + cfg.odom_sigma * jax.random.normal(ko, ()), 0.0)
+  odom = jnp.where(cfg.has_odom, vel_b[0] + cfg.odom_sigma * n[16], 0.0)
   one = jnp.ones((), f32)
   return SensorReadings(
     gps_pos=gps_pos, gps_vel=gps_vel, gps_fresh=one, gyro=gyro, accel=accel, mag_yaw=mag_yaw, mag_fresh=one,
@@ -167,13 +171,13 @@ def _measure(cfg: SensorConfig, truth: TrueState, gyro_bias, accel_bias, gps_dri
 
 def init_sensors(cfg: SensorConfig, truth: TrueState, rng) -> SensorState:
   """Draws turn-on biases and an initial GPS wander; `held` gets a first sample of everything. tick = 0."""
-  k = jax.random.split(rng, 5)
-  gyro_bias = cfg.gyro_bias_init * jax.random.normal(k[0], (3,))
-  accel_bias = cfg.accel_bias_init * jax.random.normal(k[1], (3,))
+  n = jax.random.normal(rng, (9 + _N_MEAS_NOISE,))  # one draw: cheap to compile
+  gyro_bias = cfg.gyro_bias_init * n[0:3]
+  accel_bias = cfg.accel_bias_init * n[3:6]
   sig_d = jnp.array([cfg.gps_drift_sigma_h, cfg.gps_drift_sigma_h, cfg.gps_drift_sigma_v], jnp.float32)
-  gps_drift = sig_d * jax.random.normal(k[2], (3,))
+  gps_drift = sig_d * n[6:9]
   baro_drift = jnp.zeros((), jnp.float32)
-  held = _measure(cfg, truth, gyro_bias, accel_bias, gps_drift, baro_drift, k[3])
+  held = _measure(cfg, truth, gyro_bias, accel_bias, gps_drift, baro_drift, n[9:])
   return SensorState(tick=jnp.zeros((), jnp.int32), gyro_bias=gyro_bias, accel_bias=accel_bias,
                      gps_drift=gps_drift, baro_drift=baro_drift, held=held)
 
@@ -183,16 +187,16 @@ def sense(cfg: SensorConfig, state: SensorState, truth: TrueState, rng, dt) -> t
 
   Returns (new state, readings). The first call after `init_sensors` (tick 0) has every sensor fresh.
   """
-  k = jax.random.split(rng, 5)
+  n = jax.random.normal(rng, (10 + _N_MEAS_NOISE,))  # one draw: cheap to compile
   sqdt = jnp.sqrt(dt)
-  gyro_bias = state.gyro_bias + cfg.gyro_bias_walk * sqdt * jax.random.normal(k[0], (3,))
-  accel_bias = state.accel_bias + cfg.accel_bias_walk * sqdt * jax.random.normal(k[1], (3,))
+  gyro_bias = state.gyro_bias + cfg.gyro_bias_walk * sqdt * n[0:3]
+  accel_bias = state.accel_bias + cfg.accel_bias_walk * sqdt * n[3:6]
   # first-order Gauss-Markov wander with stationary σ_d: x' = a x + σ_d sqrt(1 - a^2) n
   a = jnp.exp(-dt / cfg.gps_drift_tau)
   sig_d = jnp.array([cfg.gps_drift_sigma_h, cfg.gps_drift_sigma_h, cfg.gps_drift_sigma_v], jnp.float32)
-  gps_drift = a * state.gps_drift + sig_d * jnp.sqrt(1.0 - a * a) * jax.random.normal(k[2], (3,))
-  baro_drift = state.baro_drift + cfg.baro_drift_walk * sqdt * jax.random.normal(k[3], ())
-  new = _measure(cfg, truth, gyro_bias, accel_bias, gps_drift, baro_drift, k[4])
+  gps_drift = a * state.gps_drift + sig_d * jnp.sqrt(1.0 - a * a) * n[6:9]
+  baro_drift = state.baro_drift + cfg.baro_drift_walk * sqdt * n[9]
+  new = _measure(cfg, truth, gyro_bias, accel_bias, gps_drift, baro_drift, n[10:])
 
   per = _periods(cfg, dt)
   t = state.tick.astype(jnp.float32)

@@ -1,0 +1,313 @@
+"""EKF on analytic truth trajectories with noisy sensors: accuracy, gating, GPS timeout reset, ramp drag, rng, vmap."""
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from specguard_jax.ekf import CH, CHANNELS, EKFConfig, ekf_body_rates, ekf_euler, ekf_init, ekf_std, ekf_step
+from specguard_jax.math3d import euler_to_quat, quat_to_rot
+from specguard_jax.sensors import SensorConfig, init_sensors, sense
+from specguard_jax.types import SensorReadings, TrueState
+
+DT = 0.02
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# analytic truth: position and yaw as functions of t; velocity/acceleration by autodiff; a multicopter's attitude
+# aligns body z with the thrust direction (acc - g) at the given yaw; a rover stays level; body rates from dR/dt.
+
+
+def _trajectory(p, t):
+  """Parametric position and yaw at time t (s). p [9]: x0, y0, z0, radius, omega, vx, vz, yaw0, yaw_follow.
+
+  Horizontal circle of the given radius whose angular rate ramps smoothly from 0 to omega (time constant 3 s),
+  plus a constant eastward speed vx and a climb whose rate ramps to vz; yaw = yaw0 + yaw_follow * circle angle.
+  """
+  phi = p[4] * (t - 3.0 * (1.0 - jnp.exp(-t / 3.0)))
+  pos = jnp.stack([p[0] + p[3] * (jnp.cos(phi) - 1.0) + p[5] * t, p[1] + p[3] * jnp.sin(phi),
+                   p[2] + p[6] * (jnp.sqrt(1.0 + t * t) - 1.0)])
+  return pos, p[7] + p[8] * phi
+
+
+def _truth_at(p, t, rover):
+  pos_fn = lambda t: _trajectory(p, t)[0]
+  d1 = jax.jacfwd(pos_fn)
+  d2 = jax.jacfwd(d1)
+
+  def quat(t):
+    psi = _trajectory(p, t)[1]
+    if rover:
+      return euler_to_quat(jnp.stack([0.0 * psi, 0.0 * psi, psi]))
+    zb = d2(t) + jnp.array([0.0, 0.0, 9.81])
+    zb = zb / jnp.linalg.norm(zb)
+    c, s = jnp.cos(psi), jnp.sin(psi)
+    u = jnp.stack([c * zb[0] + s * zb[1], -s * zb[0] + c * zb[1], zb[2]])  # thrust axis in the yawed frame
+    roll = jnp.arctan2(-u[1], jnp.sqrt(u[0] ** 2 + u[2] ** 2))
+    pitch = jnp.arctan2(u[0], u[2])
+    return euler_to_quat(jnp.stack([roll, pitch, psi]))
+
+  q = quat(t)
+  w = quat_to_rot(q).T @ jax.jacfwd(lambda t: quat_to_rot(quat(t)))(t)
+  return TrueState(pos=pos_fn(t), vel=d1(t), quat=q, ang_vel=jnp.stack([w[2, 1], w[0, 2], w[1, 0]]), acc=d2(t))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def make_truth(params, n, rover=False):
+  """TrueState [B, n] for trajectory parameters [B, 9] (see `_trajectory`), n ticks of DT."""
+  t = jnp.arange(n, dtype=jnp.float32) * DT
+  return jax.vmap(lambda p: jax.vmap(lambda t: _truth_at(p, t, rover))(t))(params)
+
+
+PI = math.pi
+TRAJ = {  # x0, y0, z0, radius, omega, vx, vz, yaw0, yaw_follow
+  "hover": [3.0, -2.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.0],
+  "circle": [25.0, 0.0, 10.0, 25.0, 8.0 / 25.0, 0.0, 0.0, PI / 2, 1.0],  # 8 m/s, 2.56 m/s^2 centripetal
+  "climb": [0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 2.0, -1.0, 0.0],  # climbs at up to 2 m/s
+  "rover": [10.0, 0.0, 0.2, 10.0, 0.3, 0.0, 0.0, PI / 2, 1.0],  # 3 m/s on a 10 m circle
+}
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def simulate(scfg, ecfg, truth, gps_offset, rng):
+  """Sensors + EKF over a truth trajectory [n]; gps_offset [n, 3] is added to the GPS position (spoofing).
+
+  Tick 0 initialises the filter; outputs are for ticks 1..n-1.
+  """
+  n = truth.pos.shape[0]
+  t0 = jax.tree.map(lambda x: x[0], truth)
+  k0, k1, k2 = jax.random.split(rng, 3)
+  ss = init_sensors(scfg, t0, k0)
+  ss, r0 = sense(scfg, ss, t0, k1, DT)
+  ekf = ekf_init(ecfg, r0.replace(gps_pos=r0.gps_pos + gps_offset[0]))
+
+  def body(carry, inp):
+    ss, ekf = carry
+    tr, off, k = inp
+    ss, r = sense(scfg, ss, tr, k, DT)
+    r = r.replace(gps_pos=r.gps_pos + off)
+    ekf = ekf_step(ecfg, ekf, r, DT)
+    out = dict(pos=ekf.pos, vel=ekf.vel, euler=ekf_euler(ekf), rates=ekf_body_rates(ekf, r), ratio=ekf.test_ratio,
+               accepted=ekf.accepted, fresh=ekf.fresh, reset=ekf.reset, std=ekf_std(ekf))
+    return (ss, ekf), out
+
+  rest = jax.tree.map(lambda x: x[1:], truth)
+  _, out = jax.lax.scan(body, (ss, ekf), (rest, gps_offset[1:], jax.random.split(k2, n - 1)))
+  return out
+
+
+DRONE = (SensorConfig.drone(), EKFConfig.drone())
+ROVER = (SensorConfig.rover(), EKFConfig.rover())
+N = 2500  # 50 s
+SETTLE = 500  # accuracy is judged after the first 10 s
+T_ATTACK = 20.0  # s, start of the GPS spoofing scenarios
+RAMP_RATE = 0.2  # m/s
+_simulate_batch = jax.jit(jax.vmap(functools.partial(simulate, *DRONE)))
+
+# Drone scenarios, all run in ONE vmapped call (one compile): (name, trajectory, GPS attack, rng seed)
+SCENARIOS = (("hover", "hover", None, 0), ("circle", "circle", None, 0), ("climb", "climb", None, 0),
+             ("jump", "hover", "jump", 2), ("ramp", "hover", "ramp", 3), ("hover_seed5", "hover", None, 5))
+IDX = {name: i for i, (name, *_) in enumerate(SCENARIOS)}
+
+
+def _offset(kind):
+  t = np.arange(N)[:, None] * DT
+  if kind == "jump":  # 50 m east, at once
+    return np.where(t >= T_ATTACK, [50.0, 0.0, 0.0], 0.0)
+  if kind == "ramp":  # slowly growing east offset
+    return np.clip(t - T_ATTACK, 0.0, None) * [RAMP_RATE, 0.0, 0.0]
+  return np.zeros((N, 3))
+
+
+def _drone_inputs(order):
+  sc = [SCENARIOS[i] for i in order]
+  truth = make_truth(jnp.asarray([TRAJ[traj] for _, traj, _, _ in sc], jnp.float32), N)
+  off = jnp.asarray(np.stack([_offset(kind) for _, _, kind, _ in sc]), jnp.float32)
+  keys = jnp.stack([jax.random.PRNGKey(seed) for *_, seed in sc])
+  return truth, off, keys
+
+
+@pytest.fixture(scope="module")
+def drone():
+  """(truth [B, N], outputs [B, N-1]) of all drone scenarios, numpy."""
+  truth, off, keys = _drone_inputs(range(len(SCENARIOS)))
+  out = _simulate_batch(truth, off, keys)
+  return jax.tree.map(np.asarray, truth), jax.tree.map(np.asarray, out)
+
+
+def _pick(tree, i):
+  return jax.tree.map(lambda x: x[i], tree)
+
+
+def _np_euler(q):
+  w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+  return np.stack([np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                   np.arcsin(np.clip(2 * (w * y - z * x), -1, 1)),
+                   np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))], -1)
+
+
+def _errors(truth, out, settle=SETTLE):
+  """RMS errors after `settle` ticks: position (m, 3-D), velocity (m/s, 3-D), tilt (deg, roll/pitch, and max),
+  yaw (deg), body rates (rad/s, 3-D)."""
+  s = slice(settle, None)
+  tp, tv, tq, tw = (np.asarray(x)[1:][s] for x in (truth.pos, truth.vel, truth.quat, truth.ang_vel))
+  de = np.asarray(out["euler"])[s] - _np_euler(tq)
+  de = np.degrees((de + np.pi) % (2 * np.pi) - np.pi)
+  rms = lambda x: float(np.sqrt(np.mean(np.sum(np.square(x), axis=-1))))
+  return dict(pos=rms(np.asarray(out["pos"])[s] - tp), vel=rms(np.asarray(out["vel"])[s] - tv),
+              tilt=float(np.sqrt(np.mean(de[:, :2] ** 2))), tilt_max=float(np.abs(de[:, :2]).max()),
+              yaw=float(np.sqrt(np.mean(de[:, 2] ** 2))), rates=rms(np.asarray(out["rates"])[s] - tw))
+
+
+@pytest.mark.parametrize("name", ["hover", "circle", "climb"])
+def test_drone_tracks_truth(drone, name):
+  truth, out = (_pick(x, IDX[name]) for x in drone)
+  e = _errors(truth, out)
+  assert e["pos"] < 1.0 and e["vel"] < 0.3, e
+  assert e["tilt"] < 2.0 and e["tilt_max"] < 4.0 and e["yaw"] < 5.0, e
+  assert e["rates"] < 0.01, e
+  # every drone channel delivers, and healthy samples pass their gates (3σ gates reject a few by design)
+  fresh = out["fresh"][SETTLE:] > 0
+  acc = out["accepted"][SETTLE:]
+  for i, ch in enumerate(CHANNELS):
+    if ch != "odom":
+      assert fresh[:, i].sum() > 100, ch
+      assert acc[fresh[:, i], i].mean() > 0.97, ch
+  assert fresh[:, CH["odom"]].sum() == 0
+  assert not np.any(out["reset"])
+  # the filter's position σ is sane
+  std = out["std"][SETTLE:]
+  assert np.all(std[:, :3] < 1.5) and np.all(std[:, :3] > 0.01)
+
+
+def test_rover_tracks_truth():
+  truth = _pick(make_truth(jnp.asarray([TRAJ["rover"]], jnp.float32), N, True), 0)
+  assert abs(float(jnp.linalg.norm(truth.vel[-1])) - 3.0) < 0.01
+  out = jax.tree.map(np.asarray, simulate(*ROVER, truth, jnp.zeros((N, 3)), jax.random.PRNGKey(1)))
+  e = _errors(truth, out)
+  assert e["pos"] < 1.0 and e["vel"] < 0.3 and e["tilt"] < 2.0 and e["yaw"] < 5.0, e
+  fresh = out["fresh"] > 0
+  assert fresh[:, CH["odom"]].sum() > 1000 and fresh[:, CH["flow_x"]].sum() == 0
+  assert out["accepted"][SETTLE:][fresh[SETTLE:, CH["odom"]], CH["odom"]].mean() > 0.97
+
+
+def test_gps_jump_rejected_then_reset(drone):
+  truth, out = (_pick(x, IDX["jump"]) for x in drone)
+  tt = np.arange(1, N) * DT
+  ex = out["pos"][:, 0] - truth.pos[1:, 0]
+  acc = out["accepted"][:, CH["gps_pos_x"]]
+  ratio = out["ratio"][:, CH["gps_pos_x"]]
+  reset_t = tt[out["reset"] > 0]
+  # before the attack: accepted, near truth
+  before = (tt > 5.0) & (tt < T_ATTACK)
+  assert acc[before].mean() > 0.99 and np.all(np.abs(ex[before]) < 1.5)
+  # the 50 m jump fails the 5σ gate and the estimate stays with the truth ...
+  during = (tt >= T_ATTACK) & (tt < T_ATTACK + 6.5)
+  assert np.all(acc[during] == 0.0) and np.all(ratio[during] > 1.0)
+  assert np.all(np.abs(ex[during]) < 1.0)
+  # ... until ~7 s of continuous rejection, when the filter resets to the (spoofed) GPS, once
+  assert len(reset_t) == 1 and T_ATTACK + 6.5 <= reset_t[0] <= T_ATTACK + 7.5, reset_t
+  after = tt > reset_t[0] + 0.5
+  assert np.all(np.abs(ex[after] - 50.0) < 1.5)
+  assert acc[after].mean() > 0.98
+
+
+def test_slow_gps_ramp_passes_gate_and_drags(drone):
+  truth, out = (_pick(x, IDX["ramp"]) for x in drone)
+  tt = np.arange(1, N) * DT
+  ex = out["pos"][:, 0] - truth.pos[1:, 0]
+  fresh = out["fresh"][:, CH["gps_pos_x"]] > 0
+  during = (tt > T_ATTACK) & fresh
+  assert np.all(out["accepted"][during, CH["gps_pos_x"]] == 1.0)
+  assert np.all(out["ratio"][during, CH["gps_pos_x"]] < 1.0)
+  assert not np.any(out["reset"])
+  final_offset = RAMP_RATE * (tt[-1] - T_ATTACK)  # 6 m
+  assert ex[-1] > 0.7 * final_offset, (ex[-1], final_offset)
+
+
+def test_reproducible_and_batch_independent(drone):
+  """Same rng -> same outputs; vehicles in a vmapped batch are independent of their batch position."""
+  _, out = drone
+  assert not np.allclose(out["pos"][IDX["hover"]], out["pos"][IDX["hover_seed5"]])
+  order = list(reversed(range(len(SCENARIOS))))
+  out2 = jax.tree.map(np.asarray, _simulate_batch(*_drone_inputs(order)))
+  for j, i in enumerate(order):
+    for key in ("pos", "vel", "euler", "ratio"):
+      np.testing.assert_allclose(out2[key][j], out[key][i], rtol=0, atol=1e-5, err_msg=key)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# the filter alone on hand-made readings
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def run_filter(ecfg, readings):
+  """ekf_init on readings[0], then ekf_step over readings[1:]; returns the EKFState history."""
+  s0 = ekf_init(ecfg, _pick(readings, 0))
+  return jax.lax.scan(lambda s, r: (ekf_step(ecfg, s, r, DT),) * 2, s0, _pick(readings, slice(1, None)))[1]
+
+
+def _hover_readings(n, gps_jump_at=None):
+  """Perfect readings of a level hover at (0, 0, 10), yaw 0, at the drone rates; optional 50 m east GPS jump."""
+  k = np.arange(n)
+  gps = np.tile([0.0, 0.0, 10.0], (n, 1))
+  if gps_jump_at is not None:
+    gps[k >= gps_jump_at, 0] += 50.0
+  f = lambda x: jnp.asarray(x, jnp.float32)
+  return SensorReadings(gps_pos=f(gps), gps_vel=f(np.zeros((n, 3))), gps_fresh=f(k % 5 == 0),
+                        gyro=f(np.zeros((n, 3))), accel=f(np.tile([0.0, 0.0, 9.81], (n, 1))), mag_yaw=f(np.zeros(n)),
+                        mag_fresh=f(np.ones(n)), baro_alt=f(np.full(n, 10.0)), baro_fresh=f(k % 2 == 0),
+                        flow=f(np.zeros((n, 2))), flow_fresh=f(k % 2 == 0), odom_speed=f(np.zeros(n)),
+                        odom_fresh=f(np.zeros(n)))
+
+
+def test_gate_is_what_rejects_the_jump():
+  """Control experiment (so the jump test can fail): with the gate opened up, the same jump is fused at once."""
+  r = _hover_readings(300, gps_jump_at=100)
+  gated = run_filter(DRONE[1], r)
+  opened = run_filter(dataclasses.replace(DRONE[1], gps_pos_gate=1e4), r)
+  assert np.all(np.abs(np.asarray(gated.pos[:, 0])) < 0.1)
+  assert np.all(np.asarray(gated.accepted[110:, CH["gps_pos_x"]]) == 0.0)
+  assert float(opened.pos[150, 0]) > 10.0 and float(opened.accepted[150, CH["gps_pos_x"]]) == 1.0
+
+
+def test_init_from_gravity_and_heading():
+  e = np.array([0.2, -0.3, 2.5])
+  q = euler_to_quat(jnp.asarray(e, jnp.float32))
+  spec = quat_to_rot(q).T @ jnp.array([0.0, 0.0, 9.81])
+  r = _pick(_hover_readings(1), 0).replace(gps_pos=jnp.array([1.0, 2.0, 3.0]), gps_vel=jnp.array([0.5, 0.0, 0.0]),
+                                            accel=spec, mag_yaw=jnp.asarray(2.5), baro_alt=jnp.asarray(3.1))
+  s = jax.jit(ekf_init, static_argnums=0)(DRONE[1], r)
+  np.testing.assert_allclose(ekf_euler(s), e, atol=1e-5)
+  np.testing.assert_allclose(s.pos, [1.0, 2.0, 3.1], atol=1e-6)
+  np.testing.assert_allclose(s.vel, [0.5, 0.0, 0.0], atol=1e-6)
+  assert s.P.shape == (15, 15) and s.test_ratio.shape == (len(CHANNELS),)
+  np.testing.assert_allclose(np.diag(s.P), np.asarray(ekf_std(s)) ** 2, rtol=1e-6)
+
+
+def test_no_nan_for_extreme_finite_inputs():
+  """Garbage (huge but finite) readings, all marked fresh, never produce NaN/inf in the state."""
+  n = 300
+  k = jax.random.split(jax.random.PRNGKey(7), 6)
+  scale = lambda key, shape: jax.random.normal(key, (n,) + shape) * 10.0 ** jax.random.uniform(
+      key, (n,) + (1,) * len(shape), minval=-2, maxval=30)
+  one = jnp.ones((n,))
+  rs = SensorReadings(gps_pos=scale(k[0], (3,)), gps_vel=scale(k[1], (3,)), gps_fresh=one, gyro=scale(k[2], (3,)),
+                      accel=scale(k[3], (3,)), mag_yaw=scale(k[4], ()), mag_fresh=one, baro_alt=scale(k[5], ()),
+                      baro_fresh=one, flow=scale(k[0], (2,)), flow_fresh=one, odom_speed=scale(k[1], ()),
+                      odom_fresh=one)
+  hist = run_filter(DRONE[1], rs)
+  for name in ("pos", "vel", "quat", "gyro_bias", "accel_bias", "P", "innov", "test_ratio"):
+    assert np.all(np.isfinite(np.asarray(getattr(hist, name)))), name
+  np.testing.assert_allclose(np.linalg.norm(np.asarray(hist.quat), axis=-1), 1.0, atol=1e-4)
+  # P stays symmetric positive semi-definite
+  P = np.asarray(hist.P, np.float64)
+  assert np.allclose(P, np.swapaxes(P, -1, -2))
+  assert np.all(np.linalg.eigvalsh(P)[:, 0] > -1e-3 * np.abs(P).max(axis=(1, 2)))
