@@ -1,0 +1,354 @@
+"""Load QGroundControl mission files (`QGC WPL 110` .waypoints and `.plan` JSON) into a `Mission`.
+
+Coordinates: lat/lon (degrees, WGS-84) become local ENU metres about the home position with an equirectangular
+projection on a sphere of radius 6378137 m: x = R * dlon * cos(lat_home), y = R * dlat (radians). Over the few km of
+a mission this differs from a proper local tangent plane by < 1 cm per km (error ~ d^2 / R). Altitudes become height
+above home (z = 0 at home; frame 0/5 "global" altitudes are AMSL and get the home altitude subtracted, frame 3/6
+are already relative). Rovers ignore altitudes (z = 0).
+
+Supported commands (MAV_CMD): 16 NAV_WAYPOINT, 22 NAV_TAKEOFF (drone; only its altitude is used: the take-off is
+vertical above home), 17 NAV_LOITER_UNLIM and 19 NAV_LOITER_TIME (drone, at most one; p1 = time s, p3 = radius m;
+an unlimited loiter lasts MissionConfig.loiter_time[1] and must end the mission), 21 NAV_LAND (drone; lands at its
+lat/lon, a waypoint is added there at the previous altitude unless it is within the acceptance radius of the last
+waypoint; lat = lon = 0 means land in place), 20 NAV_RETURN_TO_LAUNCH (adds a waypoint above home, then lands for
+drones) and 178 DO_CHANGE_SPEED (p2 m/s; one speed per mission). Without a take-off item a drone takes off to its first
+waypoint's altitude. The cruise speed otherwise is the middle of MissionConfig.cruise_speed: the .plan file's
+cruiseSpeed / hoverSpeed are QGC defaults more often than intent and are ignored. Deadlines follow
+`missions.mission_timing` exactly like generated missions. ComplexItems (survey, corridor/structure scan), geofence
+and rally points in .plan files are not supported (ComplexItems are rejected).
+
+Errors: `MissionFileError` (a ValueError) with one line "<file>: line <n>: <problem>" / "<file>: item <k>: ...".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, mission_timing
+
+EARTH_RADIUS = 6378137.0
+WPL_HEADER = "QGC WPL 110"
+WPL_COLUMNS = ("seq", "current", "frame", "command", "param1", "param2", "param3", "param4", "lat", "lon", "alt",
+               "autocontinue")
+
+CMD_WAYPOINT, CMD_LOITER_UNLIM, CMD_LOITER_TIME, CMD_RTL, CMD_LAND, CMD_TAKEOFF = 16, 17, 19, 20, 21, 22
+CMD_CHANGE_SPEED = 178
+COMMAND_NAMES = {16: "NAV_WAYPOINT", 17: "NAV_LOITER_UNLIM", 19: "NAV_LOITER_TIME", 20: "NAV_RETURN_TO_LAUNCH",
+                 21: "NAV_LAND", 22: "NAV_TAKEOFF", 178: "DO_CHANGE_SPEED"}
+_NAV_COMMANDS = (16, 17, 19, 20, 21, 22)
+_GLOBAL_FRAMES = (0, 5)    # MAV_FRAME_GLOBAL(_INT): altitude AMSL
+_RELATIVE_FRAMES = (3, 6)  # MAV_FRAME_GLOBAL_RELATIVE_ALT(_INT): altitude above home
+_MISSION_FRAME = 2         # MAV_FRAME_MISSION: DO_ commands without coordinates
+
+
+class MissionFileError(ValueError):
+  """A mission file that cannot be loaded; the message names the file, the line/item and the problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class MissionItem:
+  """One parsed mission item. where: "line 5" / "item 3" (for messages); alt as written (frame decides)."""
+
+  where: str
+  command: int
+  frame: int
+  params: tuple  # (p1, p2, p3, p4)
+  lat: float
+  lon: float
+  alt: float
+
+
+def latlon_to_enu(lat, lon, home_lat, home_lon):
+  """Equirectangular (x east, y north) metres of lat/lon (deg) about home (deg). Works on floats or arrays."""
+  x = EARTH_RADIUS * np.radians(np.asarray(lon) - home_lon) * math.cos(math.radians(home_lat))
+  y = EARTH_RADIUS * np.radians(np.asarray(lat) - home_lat)
+  return x, y
+
+
+def enu_to_latlon(x, y, home_lat, home_lon):
+  """Inverse of latlon_to_enu: (lat, lon) degrees."""
+  lat = home_lat + np.degrees(np.asarray(y) / EARTH_RADIUS)
+  lon = home_lon + np.degrees(np.asarray(x) / (EARTH_RADIUS * math.cos(math.radians(home_lat))))
+  return lat, lon
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Parsers
+
+
+def _fail(name, where, problem):
+  raise MissionFileError(f"{name}: {where}: {problem}" if where else f"{name}: {problem}")
+
+
+def parse_wpl(text: str, name: str = "<string>"):
+  """Parse `QGC WPL 110` text. Returns (home (lat, lon, alt_amsl), [MissionItem]); line 0 (seq 0) is home."""
+  lines = text.splitlines()
+  if not lines or lines[0].strip() != WPL_HEADER:
+    _fail(name, "line 1", f"missing header {WPL_HEADER!r} (got {lines[0].strip()[:40]!r})" if lines
+          else f"empty file (expected header {WPL_HEADER!r})")
+  rows = []
+  for lineno, line in enumerate(lines[1:], start=2):
+    if not line.strip():
+      continue
+    cols = line.rstrip("\r\n").split("\t")
+    if len(cols) != len(WPL_COLUMNS):
+      cols = line.split()  # some tools write spaces
+    if len(cols) != len(WPL_COLUMNS):
+      _fail(name, f"line {lineno}", f"expected {len(WPL_COLUMNS)} tab-separated columns, got {len(cols)}")
+    vals = []
+    for col, raw in zip(WPL_COLUMNS, cols):
+      try:
+        v = float(raw)
+      except ValueError:
+        _fail(name, f"line {lineno}", f"column {col!r} is not a number: {raw.strip()[:20]!r}")
+      if not math.isfinite(v):
+        _fail(name, f"line {lineno}", f"column {col!r} is not finite: {raw.strip()!r}")
+      vals.append(v)
+    seq = int(vals[0])
+    if seq != len(rows):
+      _fail(name, f"line {lineno}", f"sequence number {seq}, expected {len(rows)}")
+    rows.append((lineno, vals))
+  if not rows:
+    _fail(name, "", "no items (not even the home line)")
+  _, h = rows[0]
+  if h[8] == 0.0 and h[9] == 0.0:
+    _fail(name, f"line {rows[0][0]}", "home position (seq 0) has lat = lon = 0")
+  items = [MissionItem(f"line {ln}", int(v[3]), int(v[2]), tuple(v[4:8]), v[8], v[9], v[10]) for ln, v in rows[1:]]
+  return (h[8], h[9], h[10]), items
+
+
+def parse_plan(text: str, name: str = "<string>"):
+  """Parse QGC `.plan` JSON. Returns (home (lat, lon, alt_amsl), [MissionItem]); items numbered from 1."""
+  try:
+    doc = json.loads(text)
+  except json.JSONDecodeError as e:
+    _fail(name, f"line {e.lineno}", f"not valid JSON ({e.msg})")
+  if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
+    _fail(name, "", "not a QGroundControl plan (fileType != 'Plan')")
+  mission = doc.get("mission")
+  if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
+    _fail(name, "", "missing 'mission.items' list")
+  home = mission.get("plannedHomePosition")
+  if not isinstance(home, list) or len(home) != 3 or not all(isinstance(v, (int, float)) for v in home):
+    _fail(name, "", "missing or malformed 'mission.plannedHomePosition' [lat, lon, alt]")
+  if home[0] == 0 and home[1] == 0:
+    _fail(name, "", "plannedHomePosition has lat = lon = 0")
+  items = []
+  for k, it in enumerate(mission["items"], start=1):
+    where = f"item {k}"
+    if not isinstance(it, dict):
+      _fail(name, where, "not a JSON object")
+    typ = it.get("type")
+    if typ == "ComplexItem":
+      _fail(name, where, f"ComplexItem ({it.get('complexItemType', '?')}) not supported; use simple waypoints")
+    if typ != "SimpleItem":
+      _fail(name, where, f"unknown item type {typ!r}")
+    cmd, frame, params = it.get("command"), it.get("frame", 3), it.get("params")
+    if not isinstance(cmd, int) or not isinstance(frame, int):
+      _fail(name, where, "'command' and 'frame' must be integers")
+    if not isinstance(params, list) or len(params) != 7:
+      _fail(name, where, "'params' must be a list of 7 values")
+    vals = []
+    for j, v in enumerate(params):
+      if v is None:  # QGC writes NaN as null
+        v = math.nan if j >= 4 else 0.0
+      if not isinstance(v, (int, float)) or isinstance(v, bool):
+        _fail(name, where, f"param {j + 1} is not a number: {v!r}")
+      vals.append(float(v))
+    items.append(MissionItem(where, cmd, frame, tuple(vals[:4]), vals[4], vals[5], vals[6]))
+  return tuple(float(v) for v in home), items
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Items -> Mission
+
+
+def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = "<string>") -> Mission:
+  """Interpret parsed items (see module docstring) as a Mission for `vehicle` ("drone" | "rover")."""
+  rover = vehicle == "rover"
+  home_lat, home_lon, home_alt = home
+  wps = []          # [x, y, z] relative to home
+  takeoff_alt = None
+  loiter_wp, loiter_time, loiter_radius = -1, 0.0, cfg.loiter_radius
+  land = 0.0
+  speeds = set()
+  ended_by = None   # command that must end the mission
+
+  def altitude(it):
+    if not math.isfinite(it.alt):
+      _fail(name, it.where, f"{COMMAND_NAMES[it.command]} without altitude")
+    if it.frame in _GLOBAL_FRAMES:
+      return it.alt - home_alt
+    if it.frame in _RELATIVE_FRAMES:
+      return it.alt
+    _fail(name, it.where, f"unsupported frame {it.frame} (use 0/5 global or 3/6 relative altitude)")
+
+  def position(it):
+    if not (math.isfinite(it.lat) and math.isfinite(it.lon)):
+      _fail(name, it.where, f"{COMMAND_NAMES[it.command]} without coordinates")
+    z = altitude(it)
+    x, y = latlon_to_enu(it.lat, it.lon, home_lat, home_lon)
+    return [float(x), float(y), 0.0 if rover else float(z)]
+
+  def has_latlon(it):
+    return math.isfinite(it.lat) and math.isfinite(it.lon) and not (it.lat == 0.0 and it.lon == 0.0)
+
+  def current_alt():
+    return wps[-1][2] if wps else (takeoff_alt or 0.0)
+
+  for it in items:
+    cmd = it.command
+    if cmd not in COMMAND_NAMES:
+      _fail(name, it.where, f"unsupported command {cmd} (supported: {sorted(COMMAND_NAMES)})")
+    cname = COMMAND_NAMES[cmd]
+    if ended_by is not None and cmd in _NAV_COMMANDS:
+      _fail(name, it.where, f"{cname} after {ended_by}, which ends the mission")
+    if rover and cmd in (CMD_TAKEOFF, CMD_LAND, CMD_LOITER_TIME, CMD_LOITER_UNLIM):
+      _fail(name, it.where, f"{cname} is not supported for rovers")
+    if cmd == CMD_CHANGE_SPEED:
+      if not it.params[1] > 0:
+        _fail(name, it.where, f"DO_CHANGE_SPEED speed must be > 0, got {it.params[1]}")
+      speeds.add(round(it.params[1], 6))
+      if len(speeds) > 1:
+        _fail(name, it.where, "only one DO_CHANGE_SPEED speed per mission is supported")
+      continue
+    if cmd == CMD_TAKEOFF:
+      if wps or takeoff_alt is not None:
+        _fail(name, it.where, "NAV_TAKEOFF must come before any waypoint (and only once)")
+      takeoff_alt = float(altitude(it))
+      if not takeoff_alt > 0:
+        _fail(name, it.where, f"take-off altitude must be > 0 m above home, got {takeoff_alt:.2f}")
+      continue
+    if cmd == CMD_WAYPOINT:
+      if not has_latlon(it):
+        _fail(name, it.where, "NAV_WAYPOINT without coordinates (lat = lon = 0)")
+      wps.append(position(it))
+    elif cmd in (CMD_LOITER_TIME, CMD_LOITER_UNLIM):
+      if loiter_wp >= 0:
+        _fail(name, it.where, "only one loiter item per mission is supported")
+      if has_latlon(it):
+        wps.append(position(it))
+      elif not wps:
+        _fail(name, it.where, f"{cname} in place before any waypoint")
+      loiter_wp = len(wps) - 1
+      if cmd == CMD_LOITER_TIME:
+        if not it.params[0] > 0:
+          _fail(name, it.where, f"NAV_LOITER_TIME time (param1) must be > 0 s, got {it.params[0]}")
+        loiter_time = it.params[0]
+      else:
+        loiter_time = float(cfg.loiter_time[1])
+        ended_by = cname
+      if it.params[2] != 0:
+        loiter_radius = abs(it.params[2])
+    elif cmd == CMD_LAND:
+      if has_latlon(it):
+        p = position(it)
+        p[2] = current_alt()
+        if not wps or math.dist(p[:2], wps[-1][:2]) > cfg.acceptance_radius:
+          wps.append(p)
+      elif not wps:
+        _fail(name, it.where, "NAV_LAND in place before any waypoint")
+      land, ended_by = 1.0, cname
+    elif cmd == CMD_RTL:
+      wps.append([0.0, 0.0, 0.0 if rover else current_alt()])
+      land, ended_by = (0.0 if rover else 1.0), cname
+    if len(wps) > MAX_WAYPOINTS:
+      _fail(name, it.where, f"too many waypoints (more than {MAX_WAYPOINTS})")
+
+  if not wps:
+    _fail(name, "", "empty mission (no navigation waypoints)")
+  if rover:
+    takeoff_alt = 0.0
+  elif takeoff_alt is None:
+    takeoff_alt = wps[0][2]
+  n = len(wps)
+  arr = np.zeros((MAX_WAYPOINTS, 3), np.float32)
+  arr[:n] = wps
+  arr[n:] = wps[-1]
+  cruise = next(iter(speeds)) if speeds else 0.5 * (cfg.cruise_speed[0] + cfg.cruise_speed[1])
+  f32 = lambda x: jnp.asarray(x, jnp.float32)
+  home_v, wp_v, n_v = f32(np.zeros(3)), f32(arr), jnp.int32(n)
+  lw, lt, ld, to = jnp.int32(loiter_wp), f32(loiter_time), f32(land), f32(takeoff_alt)
+  window_open, deadline, duration = mission_timing(home_v, wp_v, n_v, to, f32(cruise), lw, lt, ld, cfg)
+  return Mission(home=home_v, waypoints=wp_v, n_waypoints=n_v, window_open=f32(window_open),
+                 deadline=f32(deadline), takeoff_alt=to, cruise_speed=f32(cruise),
+                 acceptance_radius=f32(cfg.acceptance_radius), loiter_wp=lw, loiter_time=lt,
+                 loiter_radius=f32(loiter_radius), land=ld, nominal_duration=f32(duration))
+
+
+def _config(vehicle, cfg):
+  if vehicle not in ("drone", "rover"):
+    raise ValueError(f"vehicle must be 'drone' or 'rover', got {vehicle!r}")
+  cfg = cfg if cfg is not None else (MissionConfig.rover() if vehicle == "rover" else MissionConfig.drone())
+  if cfg.vehicle != vehicle:
+    raise ValueError(f"cfg is for a {cfg.vehicle}, but vehicle={vehicle!r}")
+  return cfg
+
+
+def loads_mission(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None = None,
+                  name: str = "<string>") -> Mission:
+  """Load a mission from file contents; fmt: "wpl" (QGC WPL 110) or "plan" (.plan JSON)."""
+  cfg = _config(vehicle, cfg)
+  if fmt == "wpl":
+    home, items = parse_wpl(text, name)
+  elif fmt == "plan":
+    home, items = parse_plan(text, name)
+  else:
+    raise ValueError(f"fmt must be 'wpl' or 'plan', got {fmt!r}")
+  return items_to_mission(home, items, vehicle, cfg, name)
+
+
+def load_mission(path, vehicle: str, cfg: MissionConfig | None = None) -> Mission:
+  """Load a `.plan` (JSON) or QGC WPL 110 (`.waypoints` / `.txt` / `.mission`) file as a Mission (home at origin).
+
+  vehicle: "drone" | "rover"; cfg: timing/acceptance defaults (MissionConfig.drone()/rover() if None).
+  The format is chosen by content (JSON object -> plan, else WPL). Raises MissionFileError on bad files.
+  """
+  path = os.fspath(path)
+  name = os.path.basename(path)
+  try:
+    with open(path, encoding="utf-8") as f:
+      text = f.read()
+  except (OSError, UnicodeDecodeError) as e:
+    raise MissionFileError(f"{name}: cannot read: {e}") from None
+  fmt = "plan" if text.lstrip().startswith("{") else "wpl"
+  return loads_mission(text, fmt, vehicle, cfg, name)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Writer (tests, examples, exporting generated missions to QGroundControl)
+
+
+def to_wpl(mission: Mission, home_lat: float, home_lon: float, home_alt: float = 0.0) -> str:
+  """QGC WPL 110 text for a single (unbatched) Mission: home, take-off (if any), speed, waypoints (loiter as
+  NAV_LOITER_TIME), NAV_LAND at the last waypoint if land. Altitudes relative (frame 3); lat/lon with 9 decimals."""
+  m = {k: np.asarray(v) for k, v in vars(mission).items()}
+  rows = [(0, 1, 0, CMD_WAYPOINT, 0, 0, 0, 0, home_lat, home_lon, home_alt)]
+
+  def add(cmd, frame, params, lat=0.0, lon=0.0, alt=0.0):
+    rows.append((len(rows), 0, frame, cmd, *params, lat, lon, alt))
+
+  if m["takeoff_alt"] > 0:
+    add(CMD_TAKEOFF, 3, (0, 0, 0, 0), 0.0, 0.0, float(m["takeoff_alt"]))
+  add(CMD_CHANGE_SPEED, _MISSION_FRAME, (1, float(m["cruise_speed"]), -1, 0))
+  n = int(m["n_waypoints"])
+  for k in range(n):
+    x, y, z = (float(v) for v in m["waypoints"][k])
+    lat, lon = enu_to_latlon(x - m["home"][0], y - m["home"][1], home_lat, home_lon)
+    if k == int(m["loiter_wp"]):
+      add(CMD_LOITER_TIME, 3, (float(m["loiter_time"]), 0, float(m["loiter_radius"]), 0), float(lat), float(lon), z)
+    else:
+      add(CMD_WAYPOINT, 3, (0, 0, 0, 0), float(lat), float(lon), z)
+  if m["land"] > 0.5:
+    add(CMD_LAND, 3, (0, 0, 0, 0), float(lat), float(lon), 0.0)
+  out = [WPL_HEADER]
+  for r in rows:
+    out.append("\t".join([str(int(v)) for v in r[:4]] + [f"{float(v):.6f}" for v in r[4:8]]
+                         + [f"{float(r[8]):.9f}", f"{float(r[9]):.9f}", f"{float(r[10]):.6f}", "1"]))
+  return "\n".join(out) + "\n"
