@@ -66,15 +66,17 @@ class MissionItem:
 
 def latlon_to_enu(lat, lon, home_lat, home_lon):
   """Equirectangular (x east, y north) metres of lat/lon (deg) about home (deg). Works on floats or arrays."""
-  x = EARTH_RADIUS * np.radians(np.asarray(lon) - home_lon) * math.cos(math.radians(home_lat))
-  y = EARTH_RADIUS * np.radians(np.asarray(lat) - home_lat)
+  lat, lon = np.asarray(lat, np.float64), np.asarray(lon, np.float64)  # float32 degrees would cost ~0.5 m
+  x = EARTH_RADIUS * np.radians(lon - home_lon) * math.cos(math.radians(home_lat))
+  y = EARTH_RADIUS * np.radians(lat - home_lat)
   return x, y
 
 
 def enu_to_latlon(x, y, home_lat, home_lon):
   """Inverse of latlon_to_enu: (lat, lon) degrees."""
-  lat = home_lat + np.degrees(np.asarray(y) / EARTH_RADIUS)
-  lon = home_lon + np.degrees(np.asarray(x) / (EARTH_RADIUS * math.cos(math.radians(home_lat))))
+  x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+  lat = home_lat + np.degrees(y / EARTH_RADIUS)
+  lon = home_lon + np.degrees(x / (EARTH_RADIUS * math.cos(math.radians(home_lat))))
   return lat, lon
 
 
