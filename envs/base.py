@@ -31,7 +31,9 @@ from envs import missions as missions_lib
 from envs import worlds as worlds_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
+from specguard_jax import rewards as rewards_lib
 from specguard_jax import sensors as sensors_lib
+from specguard_jax import specs as specs_lib
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.types import SensorReadings, TrueState
 
@@ -39,6 +41,7 @@ ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))
 OBS_SIZE = 24
 CONTROL_MODES = ("autopilot", "override")
 OVERRIDE_FRAMES = ("world", "body")
+REWARDS = ("compliance", "binary")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +66,10 @@ class EnvConfig:
   domain_randomization: bool = True
   clearance: float = 9.0
   mission: Any = None  # envs.missions.MissionConfig; None -> the vehicle's preset
+  specs: Any = None    # specguard_jax.specs.SpecTable; None -> the vehicle's table (drone S1-S12, rover S1,2,5-8,12)
+  reward: str = "compliance"  # 'compliance' (sigmoid shaping, paper Sec. 4.3) | 'binary' (ablation baseline)
+  reward_normalize: bool = True   # divide the sum over specs by the sum of weights (paper Algorithm 1)
+  critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
 
   def validate(self):
     if self.world not in worlds_lib.PRESETS:
@@ -71,6 +78,8 @@ class EnvConfig:
       raise ValueError(f"unknown control_mode {self.control_mode!r}; choose one of {CONTROL_MODES}")
     if self.override_frame not in OVERRIDE_FRAMES:
       raise ValueError(f"unknown override_frame {self.override_frame!r}; choose one of {OVERRIDE_FRAMES}")
+    if self.reward not in REWARDS:
+      raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
 
@@ -102,6 +111,16 @@ class RAVEnv(Env):
     self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
     sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
     self.dt = config.tick_dt * config.ticks_per_step
+    self.spec_table = config.specs or self._default_specs()
+    self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
+    self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
+
+  def _default_specs(self):
+    return specs_lib.drone_specs() if self.vehicle == "drone" else specs_lib.rover_specs()
+
+  @property
+  def spec_names(self):
+    return self.spec_table.names
 
   # ---------------------------------------------------------------- Env API
   @property
@@ -151,6 +170,10 @@ class RAVEnv(Env):
         "sim": sim, "mission": mission, "world": world, "signals": signals, "episode": episode, "rng": k_run,
         "truncation": jnp.zeros(()), "override_active": jnp.zeros(()), "time": jnp.zeros(()),
     }
+    monitor, spec_rob, _ = self.spec_eval.monitor_update(self.spec_eval.monitor_init(), signals)
+    info["spec_monitor"] = monitor
+    info["spec_robustness"] = spec_rob
+    info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary")[1]
     obs = self._observation(world, mission, sim)
     metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
     return State(pipeline_state=data, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
@@ -211,12 +234,18 @@ class RAVEnv(Env):
     signals = tree_where(finite, signals, info["signals"])
     obs = self._observation(world, mission, sim)
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
-    reward = jnp.zeros(())
+    # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
+    monitor, spec_rob, _ = self.spec_eval.monitor_update(info["spec_monitor"], signals)
+    reward, per_spec = self.reward_fn(signals, normalize=self.config.reward_normalize,
+                                      critical_weight=self.config.critical_weight,
+                                      binary=self.config.reward == "binary")
+    reward = jnp.where(finite, reward, 0.0)
     done = (terminated | truncated).astype(jnp.float32)
     metrics = {"collision": collision.astype(jnp.float32), "crash": crash.astype(jnp.float32),
                "fence_breach": fence_breach.astype(jnp.float32), "stall": stall.astype(jnp.float32),
                "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32)}
-    new_info = dict(info, sim=sim, signals=signals, episode=ep, rng=rng, time=t,
+    new_info = dict(info, sim=sim, signals=signals, episode=ep, rng=rng, time=t, spec_monitor=monitor,
+                    spec_robustness=spec_rob, spec_reward=per_spec,
                     truncation=truncated.astype(jnp.float32), override_active=override.astype(jnp.float32))
     return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
@@ -265,8 +294,10 @@ class RAVEnv(Env):
   def _signals(self, world, mission, truth: TrueState, nav) -> dict:
     """The monitored signals of specguard_jax/signals.py from the TRUE state. dict name -> [] float32."""
     pos = self._query_pos(truth.pos)
-    q = worlds_lib.world_queries(world, mission, pos, nav.target)
     phase = nav.phase
+    landing = ((phase == nav_lib.DESCENT) | (phase == nav_lib.DONE)) & (mission.land > 0)
+    # While landing the leg is last waypoint -> landing point (envs.missions.mission_leg, target >= n).
+    q = worlds_lib.world_queries(world, mission, pos, jnp.where(landing, mission.n_waypoints, nav.target))
     vel = truth.vel
     speed_xy = jnp.linalg.norm(vel[:2])
     alt = truth.pos[2] - self._ground_offset()

@@ -1,38 +1,72 @@
-"""Wrappers that fit our per-episode randomised envs (the rest of Brax's training wrappers work as they are)."""
+"""Auto-reset that fits our per-episode randomised envs (Brax's other training wrappers work as they are).
+
+Brax's AutoResetWrapper restores a cached first state (every episode would replay the same mission, world and domain
+sample) and ignores `State.info`, where our episode state lives. Generating a fresh mission + world for every env on
+every step (to select it where done) would cost a full reset per env per step. `AutoReset` instead keeps a pool of
+pre-generated initial states and refreshes `refresh` of them per step (round robin): finished episodes take the next
+pool entries, so each new episode gets a new mission/world/domain sample as long as fewer than `refresh` episodes
+end per step on average (otherwise some pool entries are reused before being regenerated: their episodes start from
+the same mission but diverge through their own rng). Defaults: pool = max(8, B/8), refresh = max(1, B/128).
+"""
 
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 from brax.envs.base import State, Wrapper
 
 from envs.base import tree_where
 
+_POOL_KEYS = ("reset_pool", "pool_cursor", "pool_refresh", "reset_key", "last_episode")
+
 
 class AutoReset(Wrapper):
-  """Resets finished episodes with a NEW mission, world and domain sample (Brax's AutoResetWrapper replays a cached
-  first state). Works on a single or a batched (VmapWrapper-ed) env.
+  """Batched auto-reset from a refreshed pool of initial states; wrap a VmapWrapper-ed env (leading batch axis B).
 
-  The returned state of a finished episode carries the fresh episode's obs/info, but the finished step's reward,
-  done and metrics; `info['truncation']` is the finished step's, and `info['last_episode']` holds the finished
-  episode's flags (collision, crash, stall, complete, ...), valid where done.
+  After a step, a finished env carries the fresh episode's obs/info but the finished step's reward, done and
+  metrics; `info['truncation']` is the finished step's and `info['last_episode']` the finished episode's flags.
   """
 
+  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None):
+    super().__init__(env)
+    self._pool_size = pool_size
+    self._refresh = refresh
+
+  def _sizes(self, batch):
+    pool = self._pool_size or max(8, batch // 8)
+    return pool, min(pool, self._refresh or max(1, batch // 128))
+
   def reset(self, rng: jax.Array) -> State:
+    batch = rng.shape[0]
+    pool_n, _ = self._sizes(batch)
     state = self.env.reset(rng)
-    keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(rng) if rng.ndim > 1 else jax.random.fold_in(rng, 1)
-    info = dict(state.info, reset_key=keys, last_episode=state.info["episode"])
+    k_pool, k_next = jax.random.split(jax.random.fold_in(rng[0], 0x5eed))
+    pool = self.env.reset(jax.random.split(k_pool, pool_n))
+    info = dict(state.info, reset_pool=pool, pool_cursor=jnp.zeros((), jnp.int32),
+                pool_refresh=jnp.zeros((), jnp.int32), reset_key=k_next, last_episode=state.info["episode"])
     return state.replace(info=info)
 
   def step(self, state: State, action: jax.Array) -> State:
-    reset_key = state.info["reset_key"]
-    split = (jax.vmap(jax.random.split) if reset_key.ndim > 1 else jax.random.split)(reset_key)
-    next_key, sub = split[..., 0, :], split[..., 1, :]
-    inner = dict(state.info)
-    inner.pop("reset_key")
-    inner.pop("last_episode")
+    info = state.info
+    pool, cursor, ref_ptr = info["reset_pool"], info["pool_cursor"], info["pool_refresh"]
+    pool_n = pool.done.shape[0]
+    batch = state.done.shape[0]
+    _, refresh = self._sizes(batch)
+    inner = {k: v for k, v in info.items() if k not in _POOL_KEYS}
     out = self.env.step(state.replace(info=inner), action)
-    fresh = self.env.reset(sub)
     done = out.done > 0
+    # Finished envs take consecutive pool entries.
+    rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+    idx = (cursor + rank) % pool_n
+    fresh = jax.tree.map(lambda x: x[idx], pool)
     merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
-    info = dict(merged.info, truncation=out.info["truncation"], reset_key=next_key, last_episode=out.info["episode"])
-    return merged.replace(info=info)
+    # Regenerate `refresh` pool entries (round robin) with new missions/worlds.
+    key, sub = jax.random.split(info["reset_key"])
+    new = self.env.reset(jax.random.split(sub, refresh))
+    slots = (ref_ptr + jnp.arange(refresh)) % pool_n
+    pool = jax.tree.map(lambda p, n: p.at[slots].set(n), pool, new)
+    new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool,
+                    pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32),
+                    pool_refresh=((ref_ptr + refresh) % pool_n).astype(jnp.int32), reset_key=key,
+                    last_episode=out.info["episode"])
+    return merged.replace(info=new_info)

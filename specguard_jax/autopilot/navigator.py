@@ -127,8 +127,8 @@ def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
 
   land_pt = wp[last].at[2].set(0.0)
   h = pos[2]
-  vz_desc = jnp.where(h > p.land_alt2,
-                      jnp.minimum(p.z_vel_max_dn, p.land_speed + 0.6 * (h - p.land_alt2)), p.land_speed)
+  # Slow to the landing speed 2 m above MPC_LAND_ALT2 so the final window (S9) starts at the landing speed.
+  vz_desc = jnp.clip(p.land_speed + 0.6 * (h - p.land_alt2 - 2.0), p.land_speed, p.z_vel_max_dn)
   vel_descent = _hold(p, land_pt, pos).at[2].set(-vz_desc)
   vel_loiter = _hold(p, target, pos)
   vel_done = jnp.where(mission.land > 0, jnp.zeros(3), _hold(p, wp[last], pos))

@@ -6,7 +6,8 @@ a parameter name or number), a phase guard (non-temporal STL; outside it the spe
 the family's maximum) and the sigmoid family / k (see `specguard_jax.rewards`).
 
 Choices (for docs/DESIGN.md):
-  * Phase guards use `implies`: S3 (min altitude) excludes take-off and landing, S7 (min speed) applies in cruise only,
+  * Phase guards use `implies`: S3 (min altitude) applies in cruise, turns and loiter (not
+    on the ground, in take-off, descent or landing), S7 (min speed) applies in cruise only,
     S9 in landing, S10 in take-off, S11 in loiter, S5 in cruise. The 0/1 phase indicators are compared with a big-M
     scale, `(1000*in_cruise > 500)` rather than `(in_cruise > 0.5)`: the guard's robustness is then +-500 instead of
     +-0.5, so `guard -> body` has exactly the body's robustness while the phase is on (and >= 500 while it is off),
@@ -171,8 +172,8 @@ _DRONE_ROWS = (
     ("S2", "Do not veer off a boundary", "always(path_deviation < NAV_MC_POS_TH)", True, "keep_below", 0.5,
      ("path_deviation",), "NAV_MC_POS_TH"),
     ("S3", "Maintain minimum altitude",
-     f"always({_off('in_takeoff + in_landing')} -> (altitude > NAV_MIN_LTR_ALT))", False, "keep_above", 0.5,
-     ("altitude",), "NAV_MIN_LTR_ALT", _off("in_takeoff + in_landing")),
+     f"always({_on('in_cruise + in_turn + in_loiter')} -> (altitude > NAV_MIN_LTR_ALT))", False, "keep_above", 0.5,
+     ("altitude",), "NAV_MIN_LTR_ALT", _on("in_cruise + in_turn + in_loiter")),
     ("S4", "Maintain maximum altitude", "always(altitude < MIS_TAKEOFF_ALT)", False, "keep_below", 0.5,
      ("altitude",), "MIS_TAKEOFF_ALT"),
     ("S5", "Navigate through waypoints",
