@@ -120,7 +120,8 @@ def test_too_many_waypoints(tmp_path):
   rows = [f"{i}\t0\t3\t16\t0\t0\t0\t0\t{49.2606 + 0.0005 * i:.7f}\t-123.246\t15\t1" for i in range(1, 15)]
   p = tmp_path / "long.waypoints"
   p.write_text(_wpl(*rows))
-  with pytest.raises(MissionFileError, match=rf"long.waypoints: line 15: too many waypoints \(more than {MAX_WAYPOINTS}\)"):
+  msg = rf"long.waypoints: line 15: too many waypoints \(more than {MAX_WAYPOINTS}\)"
+  with pytest.raises(MissionFileError, match=msg):
     load_mission(p, "drone")
   p.write_text(_wpl(*rows[:MAX_WAYPOINTS]))
   assert int(load_mission(p, "drone").n_waypoints) == MAX_WAYPOINTS

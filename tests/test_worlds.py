@@ -1,6 +1,7 @@
 """Procedural worlds: presets, path clearance over many seeds, boundary/ceiling, and exact world_queries."""
 
 import math
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from envs import worlds as W
+from envs.mission_files import load_mission
 from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, generate_mission, path_polyline
 from specguard_jax.signals import SIGNAL_NAMES
 
@@ -97,6 +99,21 @@ def test_rover_clearance():
     assert float(obs.min()) >= W.DEFAULT_CLEARANCE - 1e-3
     assert float(fm.min()) >= W.DEFAULT_CLEARANCE - 1e-3
     assert np.all(np.asarray(w.ceiling) > 0)
+
+
+def test_example_mission_files_get_clear_worlds():
+  data = pathlib.Path(__file__).resolve().parents[1] / "envs" / "data"
+  for fname, vehicle in (("drone_inspection.plan", "drone"), ("drone_patrol.waypoints", "drone"),
+                         ("rover_loop.waypoints", "rover")):
+    m = load_mission(data / fname, vehicle)
+    mb = jax.tree.map(lambda x: jnp.broadcast_to(x, (SEEDS,) + x.shape), m)  # same shapes: no recompile
+    keys = jax.random.split(jax.random.key(11), SEEDS)
+    for pid in (0, 7):
+      w = _world_gen(jnp.int32(pid), mb, keys)
+      obs, fm = _clearance_stats(mb, w)
+      assert float(obs.min()) >= W.DEFAULT_CLEARANCE - 1e-3, (fname, pid)
+      assert float(fm.min()) >= W.DEFAULT_CLEARANCE - 1e-3, (fname, pid)
+      assert float(w.cylinder_mask.sum(-1).mean() + w.box_mask.sum(-1).mean()) >= 4.0, (fname, pid)
 
 
 def test_structure_boundary_ceiling_weather(drone_batches):
