@@ -197,7 +197,9 @@ def _condition(P):
 
 def ekf_init(cfg: EKFConfig, readings: SensorReadings) -> EKFState:
   """Initial state from one set of readings: horizontal position and velocity from GPS, height from the barometer,
-  roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases."""
+  roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases.
+  Use the readings of the first tick after `init_sensors` (every sensor fresh), with the vehicle at rest or nearly.
+  """
   f = readings.accel
   roll = jnp.arctan2(f[1], f[2])
   pitch = jnp.arctan2(-f[0], jnp.sqrt(f[1] ** 2 + f[2] ** 2))
@@ -217,11 +219,12 @@ def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
   w = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE) - s.gyro_bias
   a = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE) - s.accel_bias
-  r = quat_to_rot(s.quat)
+  # the IMU sample stands for the interval ending now: rotate the specific force with the mid-interval attitude
+  quat = _normalize_quat(quat_mul(s.quat, _rotvec_to_quat(w * dt)))
+  r = quat_to_rot(quat_mul(s.quat, _rotvec_to_quat(0.5 * w * dt)))
   acc_w = r @ a + jnp.array([0.0, 0.0, -GRAVITY])
   pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
   vel = s.vel + acc_w * dt
-  quat = _normalize_quat(quat_mul(s.quat, _rotvec_to_quat(w * dt)))
 
   eye3 = jnp.eye(3)
   F = jnp.eye(N_ERR)

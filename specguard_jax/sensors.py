@@ -118,9 +118,9 @@ def quat_yaw(q):
 
 
 def _periods(cfg: SensorConfig, dt):
-  """Ticks between samples of each slow sensor (float arrays, >= 1); dt may be traced."""
+  """Ticks between samples of each slow sensor (int32, >= 1); dt may be traced."""
   tick_rate = 1.0 / dt
-  per = lambda rate: jnp.maximum(jnp.round(tick_rate / rate), 1.0)
+  per = lambda rate: jnp.maximum(jnp.round(tick_rate / rate), 1.0).astype(jnp.int32)
   return dict(gps=per(cfg.gps_rate), mag=per(cfg.mag_rate), baro=per(cfg.baro_rate),
               flow=per(cfg.flow_rate), odom=per(cfg.odom_rate))
 
@@ -199,8 +199,7 @@ def sense(cfg: SensorConfig, state: SensorState, truth: TrueState, rng, dt) -> t
   new = _measure(cfg, truth, gyro_bias, accel_bias, gps_drift, baro_drift, n[10:])
 
   per = _periods(cfg, dt)
-  t = state.tick.astype(jnp.float32)
-  due = {name: (jnp.mod(t, p) == 0.0) for name, p in per.items()}
+  due = {name: (jnp.mod(state.tick, p) == 0) for name, p in per.items()}
   held = state.held
   f32 = jnp.float32
 
