@@ -130,9 +130,11 @@ def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   acc_sp = kp * err + cs.vel_int - kd * vel_dot
   # Horizontal acceleration limit, as PX4 limits the tilt and MPC_ACC_HOR_MAX.
   h = jnp.linalg.norm(acc_sp[:2]) + 1e-9
+  saturated = h > p.acc_hor_max
   acc_sp = acc_sp.at[:2].multiply(jnp.minimum(1.0, p.acc_hor_max / h))
-  # Anti-windup: integrate only while the output is not saturated by the tilt/thrust limits (conditional integration).
-  vel_int = jnp.clip(cs.vel_int + ki * err * dt, -p.vel_int_lim, p.vel_int_lim)
+  # Anti-windup (as PX4): the horizontal integrator only integrates while the horizontal output is not saturated.
+  grow = jnp.array([1.0, 1.0, 1.0]) - jnp.array([1.0, 1.0, 0.0]) * saturated
+  vel_int = jnp.clip(cs.vel_int + grow * ki * err * dt, -p.vel_int_lim, p.vel_int_lim)
   return acc_sp, cs.replace(vel_int=vel_int, prev_vel=vel)
 
 
