@@ -134,16 +134,21 @@ def min_sdf_on_segment(sdf, a: jnp.ndarray, b: jnp.ndarray, iters: int = 40) -> 
   |b - a| * 0.618**iters (40 iterations: < 1e-6 m for a 120 m leg). Returns [].
   """
   f = lambda t: sdf(a + t * (b - a))
+  c = 1.0 - _INV_PHI
+  init = (jnp.zeros(()), jnp.ones(()), jnp.asarray(c), jnp.asarray(_INV_PHI), f(c), f(_INV_PHI))
 
-  def body(_, lohi):
-    lo, hi = lohi
-    m1 = hi - _INV_PHI * (hi - lo)
-    m2 = lo + _INV_PHI * (hi - lo)
-    left = f(m1) <= f(m2)
-    return jnp.where(left, lo, m1), jnp.where(left, m2, hi)
+  def body(_, st):  # classic golden section: one new evaluation per iteration
+    lo, hi, m1, m2, f1, f2 = st
+    left = f1 <= f2  # minimum in [lo, m2]
+    lo, hi = jnp.where(left, lo, m1), jnp.where(left, m2, hi)
+    new_t = jnp.where(left, hi - _INV_PHI * (hi - lo), lo + _INV_PHI * (hi - lo))
+    f_new = f(new_t)
+    m1, m2 = jnp.where(left, new_t, m2), jnp.where(left, m1, new_t)
+    f1, f2 = jnp.where(left, f_new, f2), jnp.where(left, f1, f_new)
+    return lo, hi, m1, m2, f1, f2
 
-  lo, hi = jax.lax.fori_loop(0, iters, body, (jnp.zeros(()), jnp.ones(())))
-  return jnp.minimum(jnp.minimum(f(0.5 * (lo + hi)), f(0.0)), f(1.0))
+  lo, hi, _, _, f1, f2 = jax.lax.fori_loop(0, iters, body, init)
+  return jnp.minimum(jnp.minimum(jnp.minimum(f1, f2), f(0.5 * (lo + hi))), jnp.minimum(f(0.0), f(1.0)))
 
 
 def min_sdf_on_polyline(sdf, points: jnp.ndarray, iters: int = 40) -> jnp.ndarray:
