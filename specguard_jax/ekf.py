@@ -5,7 +5,8 @@ accel_bias[3] (m/s^2). Error state dx[15] = (dp, dv, dtheta, dbg, dba) with cova
 is a small rotation in the world frame: R_true = Exp(dtheta) R_est.
 
 Kept from EKF2:
-  * strapdown prediction with the IMU as control input (gyro/accel minus estimated biases), process noise from the
+  * strapdown prediction with the IMU as control input (gyro/accel minus estimated biases; the specific force is
+    rotated with the mid-interval attitude), process noise from the
     IMU noise (EKF2_GYR_NOISE, EKF2_ACC_NOISE) and bias random walks (EKF2_GYR_B_NOISE, EKF2_ACC_B_NOISE);
   * sequential scalar fusion of each fresh measurement, Joseph-form covariance update;
   * per-channel innovation-consistency gates: test ratio = innov^2 / (gate^2 * (H P H' + R)), rejected when > 1;
@@ -13,8 +14,9 @@ Kept from EKF2:
     EKF2 (gates: GPS pos 5, GPS vel 5, baro 5, mag heading 3, flow 3, odometry 5);
   * reset of horizontal position (velocity) to GPS when GPS position (velocity) fusion has been rejected for longer
     than `reset_timeout` (~7 s, EKF2's reset_timeout_max), with the reset states' covariance set to the GPS noise
-    and their cross-covariances cleared. Same for height -> barometer (the height reference). A slow GPS ramp keeps
-    its innovations inside the gate and drags the estimate; a large jump is rejected until the timeout reset;
+    and their cross-covariances cleared. Height resets to the barometer (the height reference) only when neither
+    GPS height nor baro has been accepted for the timeout, so spoofed GPS height alone never resets. A slow GPS ramp
+    keeps its innovations inside the gate and drags the estimate; a large jump is rejected until the timeout reset;
   * the last test ratios and accept flags are stored per channel (see CHANNELS) for detectors.
 Simplified vs EKF2:
   * 15 states: no magnetic-field/earth-field states (the magnetometer is a heading, fused like EKF2's yaw fusion), no
@@ -166,10 +168,6 @@ def _normalize_quat(q):
   n = jnp.linalg.norm(q)
   ok = jnp.isfinite(n) & (n > 1e-6)
   return jnp.where(ok, q / jnp.where(ok, n, 1.0), jnp.array([1.0, 0.0, 0.0, 0.0]))
-
-
-def _tree_where(c, a, b):
-  return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
