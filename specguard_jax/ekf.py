@@ -40,6 +40,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from specguard_jax.math3d import euler_to_quat, quat_mul, quat_to_euler, quat_to_rot, wrap_angle
@@ -173,8 +174,8 @@ def _normalize_quat(q):
 # ----------------------------------------------------------------------------------------------------------------------
 # covariance hygiene
 
-_VAR_MIN = jnp.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3)
-_VAR_MAX = jnp.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3)
+_VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
+_VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
 
 
 def _condition(P):
@@ -256,7 +257,7 @@ N_ROWS = len(_ROWS)
 # gate groups (EKF2 accepts/rejects these vector observations as a whole): GPS horizontal position, GPS height,
 # GPS velocity, baro, mag, flow, odometry, non-holonomic constraint
 _GROUP_OF_ROW = (0, 0, 1, 2, 2, 2, 3, 4, 5, 5, 6, 7, 7)
-_GROUPS = jnp.asarray([[float(g == k) for g in _GROUP_OF_ROW] for k in range(max(_GROUP_OF_ROW) + 1)])  # [8, 13]
+_GROUPS = np.array([[float(g == k) for g in _GROUP_OF_ROW] for k in range(max(_GROUP_OF_ROW) + 1)], np.float32)  # [8,13]
 _MAG_ROW = CH["mag"]
 
 
