@@ -1,0 +1,137 @@
+"""End-to-end env tests: missions flown by the autopilot alone, termination, NaN safety, auto-reset, override."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from brax.envs.wrappers.training import VmapWrapper
+
+import envs
+from envs import missions as missions_lib
+from envs import rollout
+from envs.wrappers import AutoReset
+
+SHORT_DRONE = missions_lib.MissionConfig.drone(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
+SHORT_ROVER = missions_lib.MissionConfig.rover(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
+
+
+@pytest.fixture(scope="module")
+def drone_env():
+  return envs.make("drone", world="urban_park", mission=SHORT_DRONE)
+
+
+@pytest.fixture(scope="module")
+def rover_env():
+  return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
+
+
+def test_make_rejects_bad_input():
+  with pytest.raises(ValueError, match="unknown vehicle 'boat'"):
+    envs.make("boat")
+  with pytest.raises(ValueError, match="unknown world 'moon'"):
+    envs.make("drone", world="moon")
+  with pytest.raises(ValueError, match="unknown env option"):
+    envs.make("drone", wings=2)
+  with pytest.raises(ValueError, match="control_mode"):
+    envs.make("drone", control_mode="fly-by-wire")
+
+
+@pytest.mark.parametrize("vehicle", ["drone", "rover"])
+def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env):
+  """The autopilot alone completes every short mission with no collision, crash, stall or geofence entry, and every
+  mission spec (online STL monitor over the whole episode) is satisfied."""
+  env = drone_env if vehicle == "drone" else rover_env
+  keys = jax.random.split(jax.random.PRNGKey(11), 4)
+  state, traj, t = rollout.fly_batch(env, keys, 1200)
+  s = rollout.summarize(state)
+  assert s["complete"] == 4, s
+  assert s["collision"] == s["crash"] == s["stall"] == s["fence_breach"] == s["nan"] == 0
+  rob = np.asarray(state.info["spec_robustness"])
+  assert rob.shape == (4, len(env.spec_names))
+  assert np.all(rob >= 0), dict(zip(env.spec_names, rob.min(0)))
+  ep = state.info["episode"]
+  assert np.all(np.asarray(ep["min_obstacle_distance"]) > 5.0)       # S1/S6 margin with the world's clearance
+  # The recorded trajectory ends near the last waypoint (or on the ground below it).
+  pos = np.asarray(traj["pos"])[np.asarray(traj["valid"])]
+  m0 = jax.tree.map(lambda x: np.asarray(x[0]), state.info["mission"])
+  last = m0.waypoints[m0.n_waypoints - 1]
+  assert np.linalg.norm((pos[-1] - last)[:2]) < 5.0
+  # EKF stayed close to the truth on the way.
+  assert np.sqrt(np.mean(np.sum((np.asarray(traj["est"]) - np.asarray(traj["pos"]))[np.asarray(traj["valid"])] ** 2,
+                                axis=-1))) < 1.5
+
+
+def test_reset_is_deterministic_and_signals_consistent(drone_env):
+  env = drone_env
+  reset = jax.jit(env.reset)
+  a, b, c = reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(2))
+  for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  assert not np.allclose(a.info["mission"].waypoints, c.info["mission"].waypoints)
+  sig = a.info["signals"]
+  pos = a.info["sim"]["truth"].pos
+  wp0 = a.info["mission"].waypoints[0]
+  assert float(sig["dist_wp"]) == pytest.approx(float(jnp.linalg.norm(wp0 - pos)), abs=1e-3)
+  assert float(sig["altitude"]) == pytest.approx(0.0, abs=1e-3)
+  assert a.obs.shape == (env.observation_size,)
+  assert np.all(np.isfinite(np.asarray(a.obs)))
+
+
+def test_collision_terminates(drone_env):
+  """An obstacle planted on the take-off point: obstacle distance < vehicle radius -> collision, episode ends."""
+  env = drone_env
+  s = env.reset(jax.random.PRNGKey(3))
+  w = s.info["world"]
+  home = s.info["mission"].home
+  cyl = w.cylinders.at[0].set(jnp.array([home[0], home[1], 2.0, 40.0]))
+  s = s.replace(info=dict(s.info, world=w.replace(cylinders=cyl, cylinder_mask=w.cylinder_mask.at[0].set(True))))
+  s2 = jax.jit(env.step)(s, jnp.zeros(3))
+  assert float(s2.done) == 1.0
+  assert float(s2.metrics["collision"]) == 1.0
+  assert float(s2.info["signals"]["obstacle_distance"]) < 0
+
+
+def test_nan_physics_never_leaks(drone_env):
+  """A NaN thrust gain blows up the physics: the step ends the episode, flags it, zero reward, finite obs/state."""
+  env = drone_env
+  s = env.reset(jax.random.PRNGKey(4))
+  dr = dict(s.info["sim"]["dr"], thrust_gain=jnp.asarray(jnp.nan))
+  s = s.replace(info=dict(s.info, sim=dict(s.info["sim"], dr=dr)))
+  s2 = jax.jit(env.step)(s, jnp.zeros(3))
+  assert float(s2.done) == 1.0 and float(s2.metrics["nan"]) == 1.0
+  assert float(s2.reward) == 0.0
+  assert np.all(np.isfinite(np.asarray(s2.obs)))
+  assert np.all(np.isfinite(np.asarray(s2.pipeline_state.qpos)))
+
+
+def test_autoreset_starts_a_new_mission(drone_env):
+  env = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2)
+  s = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(5), 2))
+  # Push env 0 to its time limit so the next step truncates it.
+  limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
+  t_end = limit[0] - 0.01
+  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))  # no stall
+  s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+  old_wp = np.asarray(s.info["mission"].waypoints)
+  s2 = jax.jit(env.step)(s, jnp.zeros((2, 3)))
+  assert np.asarray(s2.done).tolist() == [1.0, 0.0]
+  assert float(s2.info["truncation"][0]) == 1.0
+  assert float(s2.info["time"][0]) == 0.0 and float(s2.info["time"][1]) > 0.0
+  assert not np.allclose(np.asarray(s2.info["mission"].waypoints[0]), old_wp[0])
+  np.testing.assert_allclose(np.asarray(s2.info["mission"].waypoints[1]), old_wp[1])
+
+
+def test_velocity_setpoint_override():
+  """In 'override' mode the action (world velocity setpoint) replaces the navigator's once airborne."""
+  env = envs.make("drone", world="open_beach", mission=SHORT_DRONE, control_mode="override",
+                  domain_randomization=False)
+
+  def policy(obs, key):
+    return jnp.broadcast_to(jnp.array([3.0, -2.0, 0.0]), obs.shape[:-1] + (3,))
+
+  state, traj, t = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(6), 2), 150, policy=policy)
+  vel = np.asarray(state.info["sim"]["truth"].vel)
+  assert np.all(np.asarray(state.info["sim"]["nav"].phase) == 1)   # cruising, under override
+  np.testing.assert_allclose(vel[:, :2], [[3.0, -2.0]] * 2, atol=0.4)
