@@ -8,7 +8,8 @@ Kept from EKF2:
   * strapdown prediction with the IMU as control input (gyro/accel minus estimated biases; the specific force is
     rotated with the mid-interval attitude), process noise from the
     IMU noise (EKF2_GYR_NOISE, EKF2_ACC_NOISE) and bias random walks (EKF2_GYR_B_NOISE, EKF2_ACC_B_NOISE);
-  * sequential scalar fusion of each fresh measurement, Joseph-form covariance update;
+  * sequential scalar fusion of each fresh measurement with EKF2's O(n^2) covariance update P -= K (H P), then
+    symmetrised and variance-clamped once per tick (EKF2's fixCovarianceErrors) instead of the O(n^3) Joseph form;
   * per-channel innovation-consistency gates: test ratio = innov^2 / (gate^2 * (H P H' + R)), rejected when > 1;
     a vector observation (GPS horizontal position, GPS velocity, optical flow) is accepted or rejected as a whole, as in
     EKF2 (gates: GPS pos 5, GPS vel 5, baro 5, mag heading 3, flow 3, odometry 5);
@@ -284,7 +285,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
   """Gated sequential scalar fusion of all observation rows of one tick.
 
   The rows are linearised once at the predicted state; gates use the predicted covariance; a group is rejected as a
-  whole if any of its rows fails its gate; accepted rows are fused one scalar at a time (Joseph form) into an
+  whole if any of its rows fails its gate; accepted rows are fused one scalar at a time (P -= k pht', O(n^2)) into an
   accumulated error-state correction that is injected into the nominal state at the end.
   Returns (state, innov[13], test_ratio[13], accepted[13] bool).
   """
@@ -305,8 +306,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
     pht = P @ hi
     k = pht / (hi @ pht + R[i])
     dx_new = dx + k * (innov[i] - hi @ dx)
-    ikh = jnp.eye(N_ERR) - jnp.outer(k, hi)
-    p_new = ikh @ P @ ikh.T + R[i] * jnp.outer(k, k)
+    p_new = P - jnp.outer(k, pht)
     return jnp.where(accept[i], p_new, P), jnp.where(accept[i], dx_new, dx)
 
   P, dx = jax.lax.fori_loop(0, N_ROWS, body, (s.P, jnp.zeros(N_ERR)))
