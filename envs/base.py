@@ -48,7 +48,8 @@ REWARDS = ("compliance", "binary")
 class EnvConfig:
   """Static env configuration (hashable; changing it recompiles).
 
-  world: preset name (envs.worlds.PRESETS).  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
+  world: preset name (envs.worlds.PRESETS).  worlds: optional tuple of preset names; when given, each episode draws
+  its world uniformly from them (training across operating environments) and `world` is ignored.  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
   max_episode_s: hard cap on an episode (s); the per-mission limit is 2 x nominal duration + 30 s, below this cap.
   stall_s: no progress (1 m closer to the target) for this long -> stall.  control_mode: 'autopilot' (action ignored)
   or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter).
@@ -57,6 +58,7 @@ class EnvConfig:
   clearance: obstacle/fence clearance from the mission path used by world generation (m).
   """
   world: str = "suburban_residential"
+  worlds: tuple = ()
   tick_dt: float = 0.02
   ticks_per_step: int = 5
   max_episode_s: float = 400.0
@@ -72,8 +74,9 @@ class EnvConfig:
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
 
   def validate(self):
-    if self.world not in worlds_lib.PRESETS:
-      raise ValueError(f"unknown world {self.world!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
+    for w in (self.world,) + tuple(self.worlds):
+      if w not in worlds_lib.PRESETS:
+        raise ValueError(f"unknown world {w!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
     if self.control_mode not in CONTROL_MODES:
       raise ValueError(f"unknown control_mode {self.control_mode!r}; choose one of {CONTROL_MODES}")
     if self.override_frame not in OVERRIDE_FRAMES:
@@ -106,7 +109,8 @@ class RAVEnv(Env):
     self.mj_model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS, self.asset))
     self.mj_model.opt.timestep = config.tick_dt
     self.mjx_model = mjx.put_model(self.mj_model)
-    self.preset = worlds_lib.PRESETS[config.world]
+    names = tuple(config.worlds) or (config.world,)
+    self.world_ids = tuple(worlds_lib.PRESET_NAMES.index(w) for w in names)
     self.mission_cfg = config.mission or self._default_mission_config()
     self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
     sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
@@ -136,17 +140,26 @@ class RAVEnv(Env):
     return "mjx"
 
   def reset(self, rng: jax.Array) -> State:
-    k_mission, k_world, k_dr, k_phys, k_sens, k_run = jax.random.split(rng, 6)
-    mission = missions_lib.generate_mission(self.mission_cfg, k_mission)
-    return self.reset_with_mission(mission, k_world, k_dr, k_phys, k_sens, k_run)
+    return self.reset_in_world(rng, None)
+
+  def reset_in_world(self, rng: jax.Array, world_id=None, mission=None) -> State:
+    """Reset in world preset `world_id` (int, may be traced; None: the config's world, or a random one of
+    `config.worlds`), flying `mission` if given (e.g. loaded from a QGroundControl file) else a generated one."""
+    k_mission, k_world, k_dr, k_phys, k_sens, k_run, k_pick = jax.random.split(rng, 7)
+    if mission is None:
+      mission = missions_lib.generate_mission(self.mission_cfg, k_mission)
+    if world_id is None:
+      ids = jnp.asarray(self.world_ids, jnp.int32)
+      world_id = ids[0] if len(self.world_ids) == 1 else jax.random.choice(k_pick, ids)
+    return self._reset_with(mission, world_id, k_world, k_dr, k_phys, k_sens, k_run)
 
   def reset_to_mission(self, mission, rng: jax.Array) -> State:
-    """Reset flying a given mission (e.g. loaded from a QGroundControl file); world generated around it."""
-    k_world, k_dr, k_phys, k_sens, k_run = jax.random.split(rng, 5)
-    return self.reset_with_mission(mission, k_world, k_dr, k_phys, k_sens, k_run)
+    """Reset flying a given mission; world generated around it."""
+    return self.reset_in_world(rng, None, mission)
 
-  def reset_with_mission(self, mission, k_world, k_dr, k_phys, k_sens, k_run) -> State:
-    world = worlds_lib.generate_world(self.preset, mission, k_world, clearance=self.config.clearance)
+  def _reset_with(self, mission, world_id, k_world, k_dr, k_phys, k_sens, k_run) -> State:
+    world = worlds_lib.generate_world(jnp.asarray(world_id, jnp.int32), mission, k_world,
+                                      clearance=self.config.clearance)
     dr = self._sample_domain(world, k_dr)
     data, truth = self._vehicle_init(mission, dr, k_phys)
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)

@@ -33,22 +33,31 @@ def _parser():
   return p
 
 
-def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, mission_file=None,
-        max_duration=None, plot=None) -> dict:
-  """Fly `missions` missions in `world`; returns the outcome dict printed by the CLI."""
-  import jax
-  import numpy as np
-
+def make_env(vehicle: str, max_duration=None):
+  """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data)."""
   import envs
   from envs import missions as missions_lib
-  from envs import rollout
-
   overrides = {}
   if max_duration is not None:
     base = missions_lib.MissionConfig.drone() if vehicle == "drone" else missions_lib.MissionConfig.rover()
     overrides["mission"] = dataclasses.replace(base, max_duration_s=float(max_duration),
                                                min_duration_s=min(base.min_duration_s, float(max_duration) / 2))
-  env = envs.make(vehicle, world=world, **overrides)
+  return envs.make(vehicle, **overrides)
+
+
+def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, mission_file=None,
+        max_duration=None, plot=None, env=None) -> dict:
+  """Fly `missions` missions in `world`; returns the outcome dict printed by the CLI. Pass `env` (from make_env) to
+  reuse one compiled rollout across worlds."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+
+  from envs import rollout
+  from envs import worlds as worlds_lib
+
+  env = env or make_env(vehicle, max_duration)
+  world_id = worlds_lib.PRESET_NAMES.index(world)
   loaded = None
   if mission_file is not None:
     from envs import mission_files
@@ -65,7 +74,8 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
     ms = None
     if loaded is not None:
       ms = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (batch,) + np.shape(x)), loaded)
-    state, traj, t = rollout.fly_batch(env, keys, max_steps, missions=ms)
+    state, traj, t = rollout.fly_batch(env, keys, max_steps, missions=ms,
+                                       world_ids=jnp.full((batch,), world_id, jnp.int32))
     jax.block_until_ready(state.done)
     state = jax.tree.map(lambda x: x[:n], state)
     s = rollout.summarize(state)
@@ -110,9 +120,10 @@ def main(argv=None):
   names = list(worlds.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
+    env = make_env(args.vehicle, args.max_duration)
     for i, name in enumerate(names):
       results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
-                         args.plot if i == 0 else None))
+                         args.plot if i == 0 else None, env=env))
   except ValueError as e:  # bad mission file or config: one line, no traceback
     print(f"error: {e}", file=sys.stderr)
     return 2

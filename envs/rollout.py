@@ -21,17 +21,15 @@ def _policy_zero(obs, key):
 
 
 @functools.partial(jax.jit, static_argnames=("env", "max_steps", "policy"))
-def fly_batch(env, keys, max_steps: int, policy=_policy_zero, missions=None):
+def fly_batch(env, keys, max_steps: int, policy=_policy_zero, missions=None, world_ids=None):
   """Roll out len(keys) episodes. Returns (final State [B], trajectory dict of env 0, steps run []).
 
   policy(obs [B, n], key) -> action [B, 3] (ignored in control_mode='autopilot').
   missions: optional batched Mission to fly instead of generated ones.
+  world_ids: optional [B] int32 world preset ids (envs.worlds.PRESET_NAMES); None: the env's config.
   Trajectory: pos [T, 3] (true), est [T, 3] (EKF), phase [T] and valid [T] of env 0, with T = max_steps.
   """
-  if missions is None:
-    state = jax.vmap(env.reset)(keys)
-  else:
-    state = jax.vmap(env.reset_to_mission)(missions, keys)
+  state = jax.vmap(env.reset_in_world)(keys, world_ids, missions)
   step = jax.vmap(env.step)
   traj = {"pos": jnp.zeros((max_steps, 3)), "est": jnp.zeros((max_steps, 3)),
           "phase": jnp.zeros((max_steps,), jnp.int32), "valid": jnp.zeros((max_steps,), bool)}
