@@ -30,13 +30,13 @@ def _time(fn, *args, repeats=3):
   return best, out
 
 
-def bench_env(vehicle: str, n_envs: int, steps: int) -> dict:
+def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True) -> dict:
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
 
   env = envs.make(vehicle)
-  benv = AutoReset(VmapWrapper(env))
+  benv = AutoReset(VmapWrapper(env)) if autoreset else VmapWrapper(env)
   keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
   t0 = time.perf_counter()
   state = jax.jit(benv.reset)(keys)
@@ -90,6 +90,7 @@ def main():
   p.add_argument("--envs", nargs="+", type=int, default=[4096, 65536, 262144])
   p.add_argument("--steps", type=int, default=50, help="env steps per timed call")
   p.add_argument("--json", default=None, help="also write results to this JSON file")
+  p.add_argument("--no-autoreset", action="store_true", help="time the bare vmapped env (episodes may end)")
   args = p.parse_args()
   dev = jax.devices()[0]
   print(f"device: {dev.device_kind} ({jax.default_backend()}), jax {jax.__version__}")
@@ -97,7 +98,8 @@ def main():
   for vehicle in args.vehicles:
     for n in args.envs:
       r = {"vehicle": vehicle, "envs": n}
-      r.update(bench_env(vehicle, n, args.steps))
+      r.update(bench_env(vehicle, n, args.steps, autoreset=not args.no_autoreset))
+      r["autoreset"] = not args.no_autoreset
       r.update(bench_mjx(vehicle, n, args.steps * r["ticks_per_step"]))
       r["cost_ratio"] = r["mjx_steps_per_s"] / r["ticks_per_s"]
       rows.append(r)

@@ -61,6 +61,8 @@ def make_signals(key, n, t, dt):
   out["loiter_deviation"] = out["loiter_deviation"] * in_loiter
   out.update(in_takeoff=in_takeoff, in_landing=in_landing, in_loiter=in_loiter, in_cruise=in_cruise,
              time=jnp.broadcast_to(steps * dt, (n, t)).astype(jnp.float32))
+  for name in SIGNAL_NAMES:  # phase indicators this synthetic mission never enters (in_turn, in_descent)
+    out.setdefault(name, jnp.zeros((n, t), jnp.float32))
   return out
 
 
