@@ -70,7 +70,8 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
   first = None
   for start in range(0, missions, batch):
     n = min(batch, missions - start)
-    keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), start), batch)
+    # Distinct missions per world and per batch, reproducible from --seed.
+    keys = jax.random.split(jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), world_id), start), batch)
     ms = None
     if loaded is not None:
       ms = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (batch,) + np.shape(x)), loaded)

@@ -23,6 +23,11 @@ def drone_env():
 
 
 @pytest.fixture(scope="module")
+def drone_step(drone_env):
+  return jax.jit(drone_env.step)  # compiled once for the tests below
+
+
+@pytest.fixture(scope="module")
 def rover_env():
   return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
 
@@ -79,7 +84,7 @@ def test_reset_is_deterministic_and_signals_consistent(drone_env):
   assert np.all(np.isfinite(np.asarray(a.obs)))
 
 
-def test_collision_terminates(drone_env):
+def test_collision_terminates(drone_env, drone_step):
   """An obstacle planted on the take-off point: obstacle distance < vehicle radius -> collision, episode ends."""
   env = drone_env
   s = env.reset(jax.random.PRNGKey(3))
@@ -87,19 +92,19 @@ def test_collision_terminates(drone_env):
   home = s.info["mission"].home
   cyl = w.cylinders.at[0].set(jnp.array([home[0], home[1], 2.0, 40.0]))
   s = s.replace(info=dict(s.info, world=w.replace(cylinders=cyl, cylinder_mask=w.cylinder_mask.at[0].set(True))))
-  s2 = jax.jit(env.step)(s, jnp.zeros(3))
+  s2 = drone_step(s, jnp.zeros(3))
   assert float(s2.done) == 1.0
   assert float(s2.metrics["collision"]) == 1.0
   assert float(s2.info["signals"]["obstacle_distance"]) < 0
 
 
-def test_nan_physics_never_leaks(drone_env):
+def test_nan_physics_never_leaks(drone_env, drone_step):
   """A NaN thrust gain blows up the physics: the step ends the episode, flags it, zero reward, finite obs/state."""
   env = drone_env
   s = env.reset(jax.random.PRNGKey(4))
   dr = dict(s.info["sim"]["dr"], thrust_gain=jnp.asarray(jnp.nan))
   s = s.replace(info=dict(s.info, sim=dict(s.info["sim"], dr=dr)))
-  s2 = jax.jit(env.step)(s, jnp.zeros(3))
+  s2 = drone_step(s, jnp.zeros(3))
   assert float(s2.done) == 1.0 and float(s2.metrics["nan"]) == 1.0
   assert float(s2.reward) == 0.0
   assert np.all(np.isfinite(np.asarray(s2.obs)))
