@@ -303,13 +303,18 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
   def body(i, carry):
     P, dx = carry
     hi = H[i]
-    pht = P @ hi
-    k = pht / (hi @ pht + R[i])
-    dx_new = dx + k * (innov[i] - hi @ dx)
-    p_new = P - jnp.outer(k, pht)
+    # Elementwise multiply-reduce instead of matvecs (XLA fuses these; batched tiny dots are one kernel each).
+    pht = jnp.sum(P * hi[None, :], axis=-1)
+    k = pht / (jnp.sum(hi * pht) + R[i])
+    dx_new = dx + k * (innov[i] - jnp.sum(hi * dx))
+    p_new = P - k[:, None] * pht[None, :]
     return jnp.where(accept[i], p_new, P), jnp.where(accept[i], dx_new, dx)
 
-  P, dx = jax.lax.fori_loop(0, N_ROWS, body, (s.P, jnp.zeros(N_ERR)))
+  # Unrolled on accelerators (a device while-loop costs a host round trip per iteration; measured 2.6 -> 2.2 ms per
+  # tick at 65,536 envs on an H100), rolled on CPU where unrolling quadruples compile time. A joint Cholesky update
+  # of all rows was slower on the GPU (2.8 ms).
+  unroll = N_ROWS if jax.default_backend() != "cpu" else 1
+  P, dx = jax.lax.fori_loop(0, N_ROWS, body, (s.P, jnp.zeros(N_ERR)), unroll=unroll)
   return _inject(cfg, s.replace(P=_condition(P)), dx), innov, ratio, accept
 
 

@@ -1,0 +1,89 @@
+"""Where an env step's time goes: each component jitted alone, vmapped over the batch, repeated in a lax.scan.
+
+  python bench/env_profile.py --vehicle drone --envs 65536 [--reps 20]
+
+Prints microseconds per call of the batch and the share of one env step (5 ticks). Components are measured in
+isolation, so their sum differs from the fused step (XLA fuses across component boundaries in the real step).
+"""
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+from mujoco import mjx
+
+
+def timed(fn, carry, reps):
+  @jax.jit
+  def run(c):
+    return jax.lax.scan(lambda c, _: (fn(c), None), c, None, length=reps)[0]
+  out = run(carry)
+  jax.block_until_ready(out)
+  best = float("inf")
+  for _ in range(3):
+    t = time.perf_counter()
+    out = run(carry)
+    jax.block_until_ready(out)
+    best = min(best, (time.perf_counter() - t) / reps)
+  return best
+
+
+def main():
+  p = argparse.ArgumentParser()
+  p.add_argument("--vehicle", default="drone")
+  p.add_argument("--envs", type=int, default=65536)
+  p.add_argument("--reps", type=int, default=20)
+  a = p.parse_args()
+  import envs
+  from brax.envs.wrappers.training import VmapWrapper
+  from envs.wrappers import AutoReset
+  from specguard_jax import ekf as ekf_lib
+  from specguard_jax import sensors as sensors_lib
+  from envs import worlds
+  env = envs.make(a.vehicle)
+  n, k = a.envs, env.config.ticks_per_step
+  keys = jax.random.split(jax.random.PRNGKey(0), n)
+  state = jax.jit(jax.vmap(env.reset))(keys)
+  info, sim = state.info, state.info["sim"]
+  mission, world = info["mission"], info["world"]
+  dt = env.config.tick_dt
+  V = jax.vmap
+  rows = []
+
+  def add(name, fn, carry, per_step=1):
+    t = timed(fn, carry, a.reps)
+    rows.append((name, t, per_step))
+    print(f"{name:34s} {t * 1e6:10.1f} us/call  x{per_step}", flush=True)
+
+  add("mjx.step (per-env model)", lambda d: V(lambda d, dr: mjx.step(env._model(dr), d))(d, sim["dr"]),
+      state.pipeline_state, k)
+  add("mjx.step (shared model)", lambda d: V(lambda d: mjx.step(env.mjx_model, d))(d), state.pipeline_state, k)
+  add("sensors.sense", lambda c: V(lambda s, t, kk: sensors_lib.sense(env.sensor_cfg, s, t, kk, dt)[0])(
+      c, sim["truth"], keys), sim["sensors"], k)
+  add("ekf_step", lambda e: V(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, dt))(e, sim["readings"]),
+      sim["ekf"], k)
+
+  def tick_only(c):
+    d, s = c
+    return V(lambda d, s, m, w, kk: env._tick(d, s, m, w, jnp.zeros(3), jnp.asarray(False), kk))(
+        d, s, mission, world, keys)
+  add("whole tick (all of the above+nav+ctl)", tick_only, (state.pipeline_state, sim), k)
+  add("world_queries", lambda p: p + 1e-3 * V(lambda w, m, p: worlds.world_queries(w, m, p, 0)["dist_wp"])(
+      world, mission, p)[:, None], sim["truth"].pos)
+  add("observation", lambda p: V(lambda w, m, s: env._observation(w, m, s))(world, mission, sim)[:, :3] * 1e-3 + p,
+      sim["truth"].pos)
+  add("STL monitor + reward", lambda m: V(lambda m, s: env.spec_eval.monitor_update(m, s)[0])(m, info["signals"]),
+      info["spec_monitor"])
+  add("env.step (vmapped, no reset)", lambda s: V(env.step)(s, jnp.zeros((n, 3))), state)
+  benv = AutoReset(VmapWrapper(env))
+  bstate = jax.jit(benv.reset)(keys)
+  add("AutoReset(Vmap(env)).step", lambda s: benv.step(s, jnp.zeros((n, 3))), bstate)
+  step = [t for name, t, _ in rows if name.startswith("AutoReset")][0]
+  print(f"\n{a.vehicle}, {n} envs, {jax.devices()[0].device_kind}: share of one AutoReset env step")
+  for name, t, per in rows:
+    print(f"  {name:34s} {100 * t * per / step:6.1f} %")
+
+
+if __name__ == "__main__":
+  main()
