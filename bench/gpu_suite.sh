@@ -14,7 +14,7 @@ export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
 case "$what" in
-  env) python3 bench/env_throughput.py --envs ${ENVS:-4096 65536 262144} --steps ${STEPS:-20} --json "$out/env_throughput.json" 2>&1 | grep -v "import warp" | tee "$out/env_throughput.txt" ;;
+  env) python3 bench/env_throughput.py --envs ${ENVS:-4096 65536 262144} --steps ${STEPS:-20} --json "$out/env_throughput.json" 2>&1 | grep --line-buffered -v "import warp" | tee "$out/env_throughput.txt" ;;
   stl) python3 bench/stl_throughput.py --backend gpu 2>&1 | tee "$out/stl_throughput.txt" ;;
   fly) for v in ${VEHICLES:-drone rover}; do
          python3 -m envs.fly --vehicle $v --world all --missions ${MISSIONS:-1000} --json > "$out/fly_$v.json" 2> "$out/fly_$v.err"
