@@ -29,6 +29,7 @@ from mujoco import mjx
 
 from envs import missions as missions_lib
 from envs import worlds as worlds_lib
+from specguard_jax import attacks as attacks_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax import rewards as rewards_lib
@@ -72,6 +73,7 @@ class EnvConfig:
   reward: str = "compliance"  # 'compliance' (sigmoid shaping, paper Sec. 4.3) | 'binary' (ablation baseline)
   reward_normalize: bool = True   # divide the sum over specs by the sum of weights (paper Algorithm 1)
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
+  attack: Any = None  # specguard_jax.attacks.AttackConfig: a random attack per episode; None -> no attack
 
   def validate(self):
     for w in (self.world,) + tuple(self.worlds):
@@ -142,16 +144,23 @@ class RAVEnv(Env):
   def reset(self, rng: jax.Array) -> State:
     return self.reset_in_world(rng, None)
 
-  def reset_in_world(self, rng: jax.Array, world_id=None, mission=None) -> State:
+  def reset_in_world(self, rng: jax.Array, world_id=None, mission=None, attack=None) -> State:
     """Reset in world preset `world_id` (int, may be traced; None: the config's world, or a random one of
-    `config.worlds`), flying `mission` if given (e.g. loaded from a QGroundControl file) else a generated one."""
+    `config.worlds`), flying `mission` if given (e.g. loaded from a QGroundControl file) else a generated one,
+    under `attack` (an AttackSchedule, e.g. attacks.schedule_for(...)) if given, else one drawn from
+    `config.attack` (no attack when that is None)."""
     k_mission, k_world, k_dr, k_phys, k_sens, k_run, k_pick = jax.random.split(rng, 7)
     if mission is None:
       mission = missions_lib.generate_mission(self.mission_cfg, k_mission)
     if world_id is None:
       ids = jnp.asarray(self.world_ids, jnp.int32)
       world_id = ids[0] if len(self.world_ids) == 1 else jax.random.choice(k_pick, ids)
-    return self._reset_with(mission, world_id, k_world, k_dr, k_phys, k_sens, k_run)
+    if attack is None:
+      attack = (attacks_lib.no_attack() if self.config.attack is None else
+                attacks_lib.sample_attack(self.config.attack, jax.random.fold_in(k_pick, 1),
+                                          mission.nominal_duration))
+    state = self._reset_with(mission, world_id, k_world, k_dr, k_phys, k_sens, k_run)
+    return state.replace(info=dict(state.info, attack=attack, attack_active=jnp.zeros(())))
 
   def reset_to_mission(self, mission, rng: jax.Array) -> State:
     """Reset flying a given mission; world generated around it."""
@@ -178,6 +187,7 @@ class RAVEnv(Env):
         "stall": jnp.zeros(()), "complete": jnp.zeros(()), "nan": jnp.zeros(()),
         "best_dist": self._goal_distance(mission, truth, nav), "last_progress": jnp.zeros(()), "progress_key": jnp.zeros((), jnp.int32),
         "min_obstacle_distance": signals["obstacle_distance"], "min_fence_margin": signals["fence_margin"],
+        "attacked": jnp.zeros(()),
     }
     info = {
         "sim": sim, "mission": mission, "world": world, "signals": signals, "episode": episode, "rng": k_run,
@@ -198,10 +208,11 @@ class RAVEnv(Env):
     rng, k_ticks = jax.random.split(info["rng"])
     override_vel = self._override_velocity(action, sim0)
     override = self._override_active(sim0)
+    attack = info["attack"]
 
     def tick(carry, key):
       data, sim, min_obs = carry
-      data, sim = self._tick(data, sim, mission, world, override_vel, override, key)
+      data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack)
       d_obs = worlds_lib.obstacle_sdf(world, self._query_pos(sim["truth"].pos))
       return (data, sim, jnp.minimum(min_obs, d_obs)), None
 
@@ -257,17 +268,19 @@ class RAVEnv(Env):
     metrics = {"collision": collision.astype(jnp.float32), "crash": crash.astype(jnp.float32),
                "fence_breach": fence_breach.astype(jnp.float32), "stall": stall.astype(jnp.float32),
                "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32)}
+    ep["attacked"] = jnp.maximum(ep["attacked"], attacks_lib.attack_active(attack, t).astype(jnp.float32))
     new_info = dict(info, sim=sim, signals=signals, episode=ep, rng=rng, time=t, spec_monitor=monitor,
+                    attack_active=attacks_lib.attack_active(attack, t).astype(jnp.float32),
                     spec_robustness=spec_rob, spec_reward=per_spec,
                     truncation=truncated.astype(jnp.float32), override_active=override.astype(jnp.float32))
     return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
   # ---------------------------------------------------------------- one autopilot tick
-  def _tick(self, data, sim, mission, world, override_vel, override, key):
+  def _tick(self, data, sim, mission, world, override_vel, override, key, attack=None):
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
-    readings = self._attack(readings, sim)
+    readings = self._attack(readings, sim, attack)
     ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], readings, cfg.tick_dt)
     landed = self._vehicle_landed(sim)
     nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, ekf.pos, landed, cfg.tick_dt)
@@ -278,9 +291,11 @@ class RAVEnv(Env):
     data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
     return data, sim
 
-  def _attack(self, readings: SensorReadings, sim) -> SensorReadings:
-    """Hook where sensor attacks enter (before the EKF). Identity here; see specguard_jax.attacks."""
-    return readings
+  def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
+    """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""
+    if attack is None:
+      return readings
+    return attacks_lib.apply_attack(readings, attack, sim["nav"].time)
 
   def _gust_step(self, gust, dr, key):
     """Ornstein-Uhlenbeck wind gust (m/s), correlation time 2 s, stationary std dr['gust_std']."""

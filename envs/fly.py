@@ -28,16 +28,25 @@ def _parser():
   p.add_argument("--mission", default=None, help="QGroundControl mission file (.plan or QGC WPL 110) to fly")
   p.add_argument("--max-duration", type=float, default=None,
                  help="cap on generated mission duration (s); shorter missions run faster on CPU")
+  p.add_argument("--attack", default=None,
+                 help="attack these sensors (comma-separated, from gps,gyro,accel,mag,baro,flow), one random attack "
+                      "per mission with the paper's Table 3 biases; several names = a multi-sensor attack")
+  p.add_argument("--attack-type", choices=("overt", "stealthy", "both"), default="overt")
   p.add_argument("--plot", default=None, help="write a top-down + altitude plot of the first mission to this PNG")
   p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
   return p
 
 
-def make_env(vehicle: str, max_duration=None):
+def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt"):
   """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data)."""
   import envs
   from envs import missions as missions_lib
+  from specguard_jax import attacks
   overrides = {}
+  if attack:
+    names = tuple(a.strip() for a in attack.split(",") if a.strip())
+    profiles = attacks.PROFILES if attack_type == "both" else (attack_type,)
+    overrides["attack"] = attacks.AttackConfig(sensors=names, profiles=profiles, n_sensors=len(names))
   if max_duration is not None:
     base = missions_lib.MissionConfig.drone() if vehicle == "drone" else missions_lib.MissionConfig.rover()
     overrides["mission"] = dataclasses.replace(base, max_duration_s=float(max_duration),
@@ -65,7 +74,8 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
   if batch <= 0:
     batch = missions if jax.default_backend() != "cpu" else min(missions, 64)
   max_steps = int(env.config.max_episode_s / env.dt) + 1
-  totals = {k: 0 for k in rollout.EPISODE_FLAGS + ("truncated", "unfinished")}
+  totals = {k: 0 for k in rollout.EPISODE_FLAGS + ("truncated", "unfinished", "attacked", "missions_violating")}
+  totals["violations_per_spec"] = [0] * len(env.spec_names)
   times, steps_run, t0, traj0 = [], 0, time.time(), None
   first = None
   for start in range(0, missions, batch):
@@ -81,7 +91,7 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
     state = jax.tree.map(lambda x: x[:n], state)
     s = rollout.summarize(state)
     for k in totals:
-      totals[k] += s[k]
+      totals[k] = [a + b for a, b in zip(totals[k], s[k])] if k == "violations_per_spec" else totals[k] + s[k]
     times += s["mission_time_s"]
     steps_run += int(t) * batch
     if first is None:
@@ -92,6 +102,9 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
       "completion_rate": totals["complete"] / missions,
       "collisions": totals["collision"], "geofence_entries": totals["fence_breach"], "crashes": totals["crash"],
       "stalls": totals["stall"], "nan_resets": totals["nan"], "truncated": totals["truncated"],
+      "attacked": totals["attacked"], "missions_violating": totals["missions_violating"],
+      "violation_rate": totals["missions_violating"] / missions,
+      "violations_per_spec": dict(zip(env.spec_names, totals["violations_per_spec"])),
       "mean_mission_time_s": float(np.mean(times)), "env_steps": steps_run,
       "control_ticks": steps_run * env.config.ticks_per_step, "wall_s": wall,
       "env_steps_per_s": steps_run / max(wall, 1e-9), "backend": jax.default_backend(),
@@ -121,18 +134,18 @@ def main(argv=None):
   names = list(worlds.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
-    env = make_env(args.vehicle, args.max_duration)
+    env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type)
     for i, name in enumerate(names):
       results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
                          args.plot if i == 0 else None, env=env))
-  except ValueError as e:  # bad mission file or config: one line, no traceback
+  except ValueError as e:  # bad mission file, attack or config: one line, no traceback
     print(f"error: {e}", file=sys.stderr)
     return 2
   if args.json:
     print(json.dumps(results[0] if len(results) == 1 else {"worlds": results}))
     return 0
   cols = ("world", "completion_rate", "collisions", "geofence_entries", "crashes", "stalls", "nan_resets",
-          "truncated", "mean_mission_time_s", "env_steps", "wall_s")
+          "truncated", "violation_rate", "mean_mission_time_s", "env_steps", "wall_s")
   print(f"{args.vehicle}: {args.missions} missions per world, seed {args.seed}, backend {results[0]['backend']}")
   print("  ".join(f"{c:>16}" for c in cols))
   for r in results:

@@ -21,15 +21,16 @@ def _policy_zero(obs, key):
 
 
 @functools.partial(jax.jit, static_argnames=("env", "max_steps", "policy"))
-def fly_batch(env, keys, max_steps: int, policy=_policy_zero, missions=None, world_ids=None):
+def fly_batch(env, keys, max_steps: int, policy=_policy_zero, missions=None, world_ids=None, attacks=None):
   """Roll out len(keys) episodes. Returns (final State [B], trajectory dict of env 0, steps run []).
 
   policy(obs [B, n], key) -> action [B, 3] (ignored in control_mode='autopilot').
   missions: optional batched Mission to fly instead of generated ones.
   world_ids: optional [B] int32 world preset ids (envs.worlds.PRESET_NAMES); None: the env's config.
+  attacks: optional batched AttackSchedule; None: drawn from the env's config.attack (or none).
   Trajectory: pos [T, 3] (true), est [T, 3] (EKF), phase [T] and valid [T] of env 0, with T = max_steps.
   """
-  state = jax.vmap(env.reset_in_world)(keys, world_ids, missions)
+  state = jax.vmap(env.reset_in_world)(keys, world_ids, missions, attacks)
   step = jax.vmap(env.step)
   traj = {"pos": jnp.zeros((max_steps, 3)), "est": jnp.zeros((max_steps, 3)),
           "phase": jnp.zeros((max_steps,), jnp.int32), "valid": jnp.zeros((max_steps,), bool)}
@@ -60,4 +61,8 @@ def summarize(state) -> dict:
   out["truncated"] = int(jnp.sum(state.info["truncation"] > 0))
   out["unfinished"] = int(jnp.sum(state.done == 0))
   out["mission_time_s"] = [float(x) for x in state.info["time"]]
+  violated = jnp.asarray(state.info["spec_robustness"]) < 0           # [B, n_specs], whole-episode verdicts
+  out["missions_violating"] = int(jnp.sum(jnp.any(violated, axis=-1)))
+  out["violations_per_spec"] = [int(x) for x in jnp.sum(violated, axis=0)]
+  out["attacked"] = int(jnp.sum(ep["attacked"] > 0))
   return out
