@@ -5,5 +5,5 @@ random sampling (`sample_attack`) and the learned attack agent all drive the sam
 """
 
 from specguard_jax.attacks.attacks import (  # noqa: F401
-    BIAS_DIMS, BIAS_RANGES, PROFILES, AttackConfig, AttackSchedule, apply_attack, attack_active, bias_at,
+    BIAS_DIMS, BIAS_RANGES, PROFILES, SENSOR_NAMES, AttackConfig, AttackSchedule, apply_attack, attack_active, bias_at,
     no_attack, sample_attack, schedule_for)

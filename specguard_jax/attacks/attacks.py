@@ -22,7 +22,7 @@ import numpy as np
 from flax import struct
 
 from specguard_jax import math3d
-from specguard_jax.types import SENSOR_NAMES, SensorReadings
+from specguard_jax.types import SENSOR_NAMES, SensorReadings  # noqa: F401 (re-exported)
 
 OVERT, STEALTHY = 0, 1
 PROFILES = ("overt", "stealthy")
