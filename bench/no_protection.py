@@ -4,8 +4,9 @@
 
 For each attacked sensor (Table 3) and profile, `--missions` generated missions spread over the 10 worlds fly with
 one random attack each (paper Table 3 bias ranges, onset 15-50 % into the mission, 15-40 s long). Reports the share
-of missions that violate any spec (whole-episode STL verdict), a critical spec (S1, S2, S12), collisions, crashes
-and completion. The env is compiled once per vehicle: missions, worlds and attacks are data.
+of missions that violate any spec (whole-episode STL verdict over the flown part), a critical spec (S1, S2, S12),
+collisions, crashes (ground impact or flip: the episode ends, often before a spec is violated), completion, and
+`failed` = any spec violated or crash or collision. The env is compiled once per vehicle: missions, worlds and attacks are data.
 """
 
 import argparse
@@ -42,7 +43,7 @@ def main():
   print(f"{a.vehicle}, {n} missions per setting over {len(worlds.PRESET_NAMES)} worlds, "
         f"{jax.devices()[0].device_kind}")
   print(f"{'sensor':6s} {'type':9s} {'violating':>9s} {'critical':>9s} {'collision':>9s} {'crash':>6s} "
-        f"{'complete':>9s} {'wall s':>7s}")
+        f"{'complete':>9s} {'failed':>7s} {'wall s':>7s}")
   for profile in a.profiles.split(","):
     for sensor in sensors:
       setting = attacks.SENSOR_NAMES.index(sensor) * 2 + attacks.PROFILES.index(profile)
@@ -61,11 +62,13 @@ def main():
            "violating": float(np.mean(np.any(rob < 0, -1))), "critical": float(np.mean(np.any(rob[:, crit] < 0, -1))),
            "collision": float(np.mean(ep["collision"] > 0)), "crash": float(np.mean(ep["crash"] > 0)),
            "complete": float(np.mean(ep["complete"] > 0)),
+           "failed": float(np.mean(np.any(rob < 0, -1) | (ep["crash"] > 0) | (ep["collision"] > 0))),
            "per_spec": dict(zip(env.spec_names, np.mean(rob < 0, 0).round(4).tolist())),
            "wall_s": time.time() - t0}
       rows.append(r)
       print(f"{sensor:6s} {profile:9s} {100 * r['violating']:8.1f}% {100 * r['critical']:8.1f}% "
-            f"{100 * r['collision']:8.1f}% {100 * r['crash']:5.1f}% {100 * r['complete']:8.1f}% {r['wall_s']:7.1f}",
+            f"{100 * r['collision']:8.1f}% {100 * r['crash']:5.1f}% {100 * r['complete']:8.1f}% "
+            f"{100 * r['failed']:6.1f}% {r['wall_s']:7.1f}",
             flush=True)
   if a.json:
     with open(a.json, "w") as f:
