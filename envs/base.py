@@ -399,6 +399,12 @@ class RAVEnv(Env):
   def _override_active(self, sim):
     return jnp.asarray(self.config.control_mode == "override")
 
+  def _model(self, dr):
+    """The MJX model with this episode's mass (and inertia) scale on the vehicle body (body 1)."""
+    m = self.mjx_model
+    s = dr["mass_scale"]
+    return m.replace(body_mass=m.body_mass.at[1].multiply(s), body_inertia=m.body_inertia.at[1].multiply(s))
+
   # ---------------------------------------------------------------- vehicle hooks
   def _default_mission_config(self):
     raise NotImplementedError

@@ -38,7 +38,6 @@ class DroneEnv(RAVEnv):
     super().__init__(config, **overrides)
     self.mc_params = mc_params or px4.MulticopterParams()
     self.airframe = px4.Airframe.from_mjcf(self.mj_model)
-    self._body = 1
 
   def _default_mission_config(self):
     return missions_lib.MissionConfig.drone()
@@ -78,12 +77,6 @@ class DroneEnv(RAVEnv):
     up = math3d.quat_to_rot(truth.quat)[2, 2]
     flipped = up < jnp.cos(TILT_CRASH)
     return sim["vehicle"]["hit"] | flipped
-
-  def _model(self, dr):
-    m = self.mjx_model
-    s = dr["mass_scale"]
-    return m.replace(body_mass=m.body_mass.at[self._body].multiply(s),
-                     body_inertia=m.body_inertia.at[self._body].multiply(s))
 
   def _vehicle_tick(self, data, sim, mission, vel_sp, leg_dir):
     dt = self.config.tick_dt

@@ -74,11 +74,6 @@ class RoverEnv(RAVEnv):
   def _vehicle_extra_init(self):
     return {"steer": jnp.zeros(()), "throttle": jnp.zeros(())}
 
-  def _model(self, dr):
-    m = self.mjx_model
-    s = dr["mass_scale"]
-    return m.replace(body_mass=m.body_mass.at[1].multiply(s), body_inertia=m.body_inertia.at[1].multiply(s))
-
   def _vehicle_tick(self, data, sim, mission, vel_sp, leg_dir):
     dt = self.config.tick_dt
     p = self.rover_params
