@@ -1,0 +1,208 @@
+"""Selective state reconstruction (SpecGuard Sec. 4.5 / DeLorean): Checkpointer + Estimator.
+
+SpecGuard's state input (per vehicle, INPUT_NAMES order) x'_t [15] =
+  pos [3] world m | vel [3] world m/s | acc [3] world m/s^2 (no gravity) | euler [3] rad (roll, pitch, yaw) |
+  rate [3] body rad/s.
+It is computed from the EKF and the readings (`input_vector`), exactly as envs.base._observation does for the first 12.
+
+While the detector's alarm is down, the Checkpointer records trusted states and controls. When the alarm rises, the
+Estimator starts from the checkpoint `lag` entries before the newest (margin for detection delay), rolls it forward
+with the fitted dynamics model (dynamics.py) over the buffered commanded controls up to the previous tick, and from
+then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCOMPROMISED sensors only:
+  * a compromised GPS / magnetometer / barometer / optical flow is simply not fused (its fresh flag is cleared), so
+    e.g. under GPS spoofing position is dead-reckoned from IMU + flow velocity + baro height + mag heading;
+  * a compromised gyroscope is replaced by the model's body rate, integrated from the predicted angular acceleration
+    (rotor-thrust torques), which the shadow EKF then corrects with the remaining aiding (GPS velocity, mag, flow)
+    through its attitude / gyro-bias states;
+  * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag).
+Selective output: only the components of x'_t that derive from a compromised sensor (SENSOR_DEPS) are replaced by
+the shadow estimate; the rest stays as measured (EKF). Everything is pure JAX, jittable and vmappable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from specguard_jax import ekf as ekf_lib
+from specguard_jax import math3d
+from specguard_jax.estimation import checkpointer as ck
+from specguard_jax.estimation import dynamics as dyn
+from specguard_jax.types import SENSOR_NAMES
+
+INPUT_NAMES = ("pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z", "acc_x", "acc_y", "acc_z",
+               "roll", "pitch", "yaw", "rate_x", "rate_y", "rate_z")
+N_INPUT = len(INPUT_NAMES)
+POS, VEL, ACC, EULER, RATE = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+
+
+def _deps():
+  d = {n: np.zeros(N_INPUT, bool) for n in SENSOR_NAMES}
+  d["gps"][POS] = d["gps"][VEL] = True
+  d["gyro"][:] = True                     # strapdown: attitude, then rotated specific force -> vel -> pos
+  d["accel"][:RATE.start] = True          # specific force -> acc, vel, pos; tilt through velocity fusion
+  d["mag"][EULER] = d["mag"][ACC] = True  # heading -> yaw -> world-frame acceleration
+  d["baro"][[2, 5]] = True                # height, vertical speed
+  d["flow"][[0, 1, 3, 4]] = True          # horizontal velocity and position
+  return np.stack([d[n] for n in SENSOR_NAMES])
+
+
+SENSOR_DEPS = _deps()
+"""[6, 15] bool: SENSOR_DEPS[s, i] = component i of x'_t derives from sensor s (SENSOR_NAMES order)."""
+
+# Checkpoint entry layout: pos 3, vel 3, acc 3, quat 4, rate 3, gyro_bias 3, accel_bias 3.
+CKPT_SIZES = (("pos", 3), ("vel", 3), ("acc", 3), ("quat", 4), ("rate", 3), ("gyro_bias", 3), ("accel_bias", 3))
+N_CKPT = sum(n for _, n in CKPT_SIZES)
+
+
+def _unpack(v):
+  out, i = {}, 0
+  for name, n in CKPT_SIZES:
+    out[name] = v[..., i:i + n]
+    i += n
+  return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconConfig:
+  """window: checkpoint ring size (ticks).  lag: checkpoint age used when the alarm rises (ticks; >= the detector's
+  delay, < window).  n_controls: 4 (drone rotor thrusts) or 2 (rover throttle, steer).  ekf: the shadow EKF's
+  EKFConfig (the vehicle's, e.g. EKFConfig.drone()); None -> EKFConfig.drone()."""
+  window: int = 50
+  lag: int = 10
+  n_controls: int = 4
+  ekf: Any = None
+  model_rate_noise: float = 0.3   # rad/s^2/sqrt(Hz): random walk of the model-rate error (shadow gyro-bias state)
+  model_rate_limit: float = 3.0   # rad/s: clamp of that state
+
+  def ekf_cfg(self):
+    return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit)
+
+
+@struct.dataclass
+class ReconState:
+  """ckpt: CheckpointState.  shadow: EKFState of the shadow filter (meaningful while active).
+  rate: [3] model body rate (rad/s).  active: [] bool, reconstruction running (alarm up).
+  since: [] s since the alarm rose (0 while inactive)."""
+  ckpt: ck.CheckpointState
+  shadow: Any
+  rate: jnp.ndarray
+  active: jnp.ndarray
+  since: jnp.ndarray
+
+
+def input_vector(ekf_state, readings) -> jax.Array:
+  """x'_t [15] from an EKF state and the readings it fused (see module docstring)."""
+  r = math3d.quat_to_rot(ekf_state.quat)
+  acc = r @ (readings.accel - ekf_state.accel_bias) + dyn.G
+  rate = ekf_lib.ekf_body_rates(ekf_state, readings)
+  return jnp.concatenate([ekf_state.pos, ekf_state.vel, acc, ekf_lib.ekf_euler(ekf_state), rate])
+
+
+def true_input_vector(truth) -> jax.Array:
+  """x'_t [15] of a TrueState (ground truth for scoring)."""
+  return jnp.concatenate([truth.pos, truth.vel, truth.acc, math3d.quat_to_euler(truth.quat), truth.ang_vel])
+
+
+def _entry(ekf_state, readings):
+  x = input_vector(ekf_state, readings)
+  return jnp.concatenate([ekf_state.pos, ekf_state.vel, x[ACC], ekf_state.quat, x[RATE], ekf_state.gyro_bias,
+                          ekf_state.accel_bias])
+
+
+def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
+  """Empty checkpoint, inactive; `ekf_state` is a template for the shadow filter (e.g. the env's initial EKF)."""
+  return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
+                    active=jnp.zeros((), bool), since=jnp.zeros(()))
+
+
+def dependent_components(compromised_mask) -> jax.Array:
+  """[15] bool: components of x'_t derived from any sensor in compromised_mask ([6] 0/1, SENSOR_NAMES order)."""
+  m = jnp.asarray(compromised_mask) > 0
+  return jnp.any(m[:, None] & jnp.asarray(SENSOR_DEPS), axis=0)
+
+
+def _start(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, dt):
+  """Shadow filter and model rate at the PREVIOUS tick, rolled forward from the checkpoint `lag` entries back."""
+  states, controls, valid = ck.ckpt_ordered(state.ckpt)
+  w = cfg.window
+  lag = min(cfg.lag, w - 1)
+  start = jnp.maximum(w - 1 - lag, w - state.ckpt.count)  # ordered index of the checkpoint (newest = w - 1)
+  e = _unpack(states[jnp.clip(start, 0, w - 1)])
+  s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=e["rate"])
+
+  def body(i, s):
+    j = start + 1 + i  # controls stored with entry j moved the vehicle from entry j-1 to entry j
+    s_new = dyn.step(params, s, controls[jnp.clip(j, 0, w - 1)], dt)
+    return jax.tree.map(lambda a, b: jnp.where(j <= w - 1, a, b), s_new, s)
+
+  s = jax.lax.fori_loop(0, lag, body, s0)
+  shadow = ekf_state.replace(pos=s.pos, vel=s.vel, quat=s.quat, gyro_bias=e["gyro_bias"],
+                             accel_bias=e["accel_bias"], gps_pos_age=jnp.zeros(()), gps_vel_age=jnp.zeros(()),
+                             hgt_age=jnp.zeros(()))
+  return shadow, s.rate
+
+
+def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
+                 compromised_mask, alarm, dt):
+  """One autopilot tick of dt (s).
+
+  ekf_state: the autopilot's EKFState after fusing `readings` (possibly attacked).  readings: SensorReadings of this
+  tick.  controls: [n_u] controls applied during the previous tick (drone: sim['vehicle']['rotors'] before the tick's
+  vehicle update).  compromised_mask: [6] 0/1 (SENSOR_NAMES order) from the diagnosis.  alarm: [] 0/1 detector flag.
+  Returns (new ReconState, x_reconstructed [15] (INPUT_NAMES)); with the alarm down x_reconstructed = x'_t measured.
+  """
+  alarm = jnp.asarray(alarm) > 0
+  mask = jnp.asarray(compromised_mask) > 0
+  x_meas = input_vector(ekf_state, readings)
+  rising = alarm & ~state.active
+  shadow0, rate0 = _start(cfg, params, state, ekf_state, dt)
+  shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
+  rate = jnp.where(rising, rate0, state.rate)
+
+  # model-predicted rate and specific force for this tick
+  s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
+  _, alpha = dyn.derivatives(params, s, controls)
+  f_b = dyn.specific_force(params, s, controls)
+  rate_new = rate + alpha * dt
+  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
+  gps, mag, baro, flow = (mask[SENSOR_NAMES.index(n)] for n in ("gps", "mag", "baro", "flow"))
+  zero = jnp.zeros(())
+  rd = readings.replace(
+      gyro=jnp.where(mask[gi], rate_new + shadow.gyro_bias, readings.gyro),
+      accel=jnp.where(mask[ai], f_b + shadow.accel_bias, readings.accel),
+      gps_fresh=jnp.where(gps, zero, readings.gps_fresh), mag_fresh=jnp.where(mag, zero, readings.mag_fresh),
+      baro_fresh=jnp.where(baro, zero, readings.baro_fresh), flow_fresh=jnp.where(flow, zero, readings.flow_fresh))
+  # With a model gyro the shadow's gyro-bias state tracks the model-rate error: inflate its process noise.
+  q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
+  shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q)))
+  shadow = ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt)
+  # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
+  rate_new = rd.gyro - shadow.gyro_bias
+  x_shadow = input_vector(shadow, rd)
+  use = alarm & dependent_components(mask)
+  x_rec = jnp.where(use, x_shadow, x_meas)
+
+  ckpt = ck.ckpt_update(state.ckpt, _entry(ekf_state, readings), controls, alarm)
+  new = ReconState(ckpt=ckpt, shadow=jax.tree.map(lambda a, b: jnp.where(alarm, a, b), shadow, ekf_state),
+                   rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
+                   since=jnp.where(alarm, state.since + dt, 0.0))
+  return new, x_rec
+
+
+def recon_scan(cfg: ReconConfig, params: dyn.DynParams, ekf_states, readings, controls, compromised_mask, alarms,
+               dt):
+  """recon_update over a [T] sequence of one vehicle (lax.scan). Returns x_reconstructed [T, 15]."""
+  init = recon_init(cfg, jax.tree.map(lambda a: a[0], ekf_states))
+
+  def body(st, xs):
+    e, r, u, a = xs
+    st, x = recon_update(cfg, params, st, e, r, u, compromised_mask, a, dt)
+    return st, x
+
+  return jax.lax.scan(body, init, (ekf_states, readings, controls, alarms))[1]
