@@ -30,6 +30,7 @@ from mujoco import mjx
 from envs import missions as missions_lib
 from envs import worlds as worlds_lib
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import detection as detection_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax import rewards as rewards_lib
@@ -40,7 +41,8 @@ from specguard_jax.types import SensorReadings, TrueState
 
 ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
 OBS_SIZE = 24
-CONTROL_MODES = ("autopilot", "override")
+CONTROL_MODES = ("autopilot", "override", "reactive")
+DETECTORS = ("none", "residual", "oracle")
 OVERRIDE_FRAMES = ("world", "body")
 REWARDS = ("compliance", "binary")
 
@@ -53,7 +55,10 @@ class EnvConfig:
   its world uniformly from them (training across operating environments) and `world` is ignored.  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
   max_episode_s: hard cap on an episode (s); the per-mission limit is 2 x nominal duration + 30 s, below this cap.
   stall_s: no progress (1 m closer to the target) for this long -> stall.  control_mode: 'autopilot' (action ignored)
-  or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter).
+  or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter; SpecGuard-PC) or
+  'reactive' (the override applies only while the detector's alarm is up; SpecGuard-RC: the recovery switch hands
+  control back to the autopilot when the alarm clears).  detector: attack detector run every tick on the attacked
+  readings and the EKF ('residual' or 'oracle'); its alarm/diagnosis are in info['alarm'] / info['diagnosis'].
   override_frame: 'world' (ENU) or 'body' (x/y rotated by the estimated yaw, as in the paper's appendix).
   domain_randomization: per-episode wind, gusts, thrust/drive gain, drag, friction, mass.
   clearance: obstacle/fence clearance from the mission path used by world generation (m).
@@ -74,6 +79,9 @@ class EnvConfig:
   reward_normalize: bool = True   # divide the sum over specs by the sum of weights (paper Algorithm 1)
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
   attack: Any = None  # specguard_jax.attacks.AttackConfig: a random attack per episode; None -> no attack
+  detector: str = "none"        # 'none' | 'residual' (CUSUM detector + diagnosis) | 'oracle' (true attack, delayed)
+  detector_delay: float = 0.0   # oracle detection delay (s)
+  detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
 
   def validate(self):
     for w in (self.world,) + tuple(self.worlds):
@@ -83,6 +91,10 @@ class EnvConfig:
       raise ValueError(f"unknown control_mode {self.control_mode!r}; choose one of {CONTROL_MODES}")
     if self.override_frame not in OVERRIDE_FRAMES:
       raise ValueError(f"unknown override_frame {self.override_frame!r}; choose one of {OVERRIDE_FRAMES}")
+    if self.detector not in DETECTORS:
+      raise ValueError(f"unknown detector {self.detector!r}; choose one of {DETECTORS}")
+    if self.control_mode == "reactive" and self.detector == "none":
+      raise ValueError("control_mode='reactive' needs a detector ('residual' or 'oracle')")
     if self.reward not in REWARDS:
       raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
@@ -117,6 +129,8 @@ class RAVEnv(Env):
     self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
     sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
     self.dt = config.tick_dt * config.ticks_per_step
+    self.det_cfg = config.detector_config or (detection_lib.DetectorConfig.drone() if self.vehicle == "drone"
+                                              else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
@@ -181,6 +195,8 @@ class RAVEnv(Env):
         "ctrl": self._vehicle_control_init(), "dr": dr, "gust": jnp.zeros(3),
         "vehicle": self._vehicle_extra_init(),
     }
+    if self.config.detector != "none":
+      sim["det"] = detection_lib.detector_init(self.det_cfg)
     signals = self._signals(world, mission, truth, nav)
     episode = {
         "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
@@ -189,10 +205,14 @@ class RAVEnv(Env):
         "min_obstacle_distance": signals["obstacle_distance"], "min_fence_margin": signals["fence_margin"],
         "attacked": jnp.zeros(()),
     }
+    if self.config.detector != "none":
+      episode["detected"] = jnp.zeros(())
     info = {
         "sim": sim, "mission": mission, "world": world, "signals": signals, "episode": episode, "rng": k_run,
         "truncation": jnp.zeros(()), "override_active": jnp.zeros(()), "time": jnp.zeros(()),
     }
+    if self.config.detector != "none":
+      info["alarm"], info["diagnosis"] = jnp.zeros(()), -jnp.ones((), jnp.int32)
     monitor, spec_rob, _ = self.spec_eval.monitor_update(self.spec_eval.monitor_init(), signals)
     info["spec_monitor"] = monitor
     info["spec_robustness"] = spec_rob
@@ -269,10 +289,14 @@ class RAVEnv(Env):
                "fence_breach": fence_breach.astype(jnp.float32), "stall": stall.astype(jnp.float32),
                "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32)}
     ep["attacked"] = jnp.maximum(ep["attacked"], attacks_lib.attack_active(attack, t).astype(jnp.float32))
+    if self.config.detector != "none":
+      ep["detected"] = jnp.maximum(ep["detected"], sim["det"].alarm.astype(jnp.float32))
     new_info = dict(info, sim=sim, signals=signals, episode=ep, rng=rng, time=t, spec_monitor=monitor,
                     attack_active=attacks_lib.attack_active(attack, t).astype(jnp.float32),
                     spec_robustness=spec_rob, spec_reward=per_spec,
                     truncation=truncated.astype(jnp.float32), override_active=override.astype(jnp.float32))
+    if self.config.detector != "none":
+      new_info.update(alarm=sim["det"].alarm.astype(jnp.float32), diagnosis=sim["det"].diagnosis)
     return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
   # ---------------------------------------------------------------- one autopilot tick
@@ -282,6 +306,12 @@ class RAVEnv(Env):
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
     readings = self._attack(readings, sim, attack)
     ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], readings, cfg.tick_dt)
+    if cfg.detector == "residual":   # actuation of the previous tick produced these readings
+      sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
+                                                        cfg.tick_dt))
+    elif cfg.detector == "oracle":
+      sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
+                                                      cfg.detector_delay))
     landed = self._vehicle_landed(sim)
     nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, ekf.pos, landed, cfg.tick_dt)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
@@ -397,7 +427,14 @@ class RAVEnv(Env):
     return jnp.nan_to_num(a)
 
   def _override_active(self, sim):
+    """Whether the policy's velocity setpoint replaces the navigator's during this env step."""
+    if self.config.control_mode == "reactive":
+      return sim["det"].alarm
     return jnp.asarray(self.config.control_mode == "override")
+
+  def _actuation(self, sim):
+    """The actuator commands the detector's vehicle model expects (see specguard_jax.detection)."""
+    raise NotImplementedError
 
   def _model(self, dr):
     """The MJX model with this episode's mass (and inertia) scale on the vehicle body (body 1)."""

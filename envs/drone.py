@@ -69,6 +69,9 @@ class DroneEnv(RAVEnv):
     return {"yaw_hold": jnp.zeros(()), "on_ground": jnp.ones((), bool), "hit": jnp.zeros((), bool),
             "rotors": jnp.zeros(self.airframe.n_rotors)}
 
+  def _actuation(self, sim):
+    return sim["vehicle"]["rotors"]
+
   def _vehicle_landed(self, sim):
     return sim["vehicle"]["on_ground"]
 

@@ -68,6 +68,9 @@ class RoverEnv(RAVEnv):
     return TrueState(pos=pos, vel=jnp.stack([qvel[0], qvel[1], 0.0]), quat=quat,
                      ang_vel=jnp.stack([0.0, 0.0, qvel[2]]), acc=jnp.stack([qacc[0], qacc[1], 0.0]))
 
+  def _actuation(self, sim):
+    return jnp.stack([sim["vehicle"]["steer"], sim["vehicle"]["throttle"]])
+
   def _vehicle_control_init(self):
     return ardurover.RoverControlState.zeros()
 

@@ -1,0 +1,60 @@
+"""Detector wired into the env tick, and the reactive (SpecGuard-RC) switch driven by its alarm."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs import missions as missions_lib
+from envs import rollout
+from specguard_jax import attacks
+
+MISSION = missions_lib.MissionConfig.drone(max_duration_s=60.0, min_duration_s=40.0)
+
+
+def _pair(s):
+  return jax.tree.map(lambda x: jnp.stack([x, x]), s)
+
+
+def test_config_errors():
+  with pytest.raises(ValueError, match="unknown detector 'radar'"):
+    envs.make("drone", detector="radar")
+  with pytest.raises(ValueError, match="reactive' needs a detector"):
+    envs.make("drone", control_mode="reactive")
+
+
+def test_residual_detector_in_env_flags_and_names_gps_spoof():
+  env = envs.make("drone", world="open_beach", mission=MISSION, detector="residual", domain_randomization=False)
+  sched = attacks.schedule_for("gps", [30.0, 0.0, 0.0], onset=15.0, duration=100.0)
+  state, _, _ = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(7), 2), 170, attacks=_pair(sched))
+  # 17 s flown: the overt spoof started at 15 s; the alarm is up and names the GPS (index 0).
+  assert np.all(np.asarray(state.info["alarm"]) == 1.0)
+  assert np.all(np.asarray(state.info["diagnosis"]) == attacks.SENSOR_NAMES.index("gps"))
+  assert np.all(np.asarray(state.info["episode"]["detected"]) == 1.0)
+
+
+def test_reactive_override_follows_oracle_alarm():
+  """RC: the policy's setpoint is used only while the (oracle, 1 s delay) alarm is up; before it the navigator
+  flies, after it ends the recovery switch hands control back."""
+  env = envs.make("drone", world="open_beach", mission=MISSION, control_mode="reactive", detector="oracle",
+                  detector_delay=1.0, domain_randomization=False)
+  sched = attacks.schedule_for("baro", [0.0], onset=12.0, duration=5.0)   # a zero bias: flight unchanged
+
+  def policy(obs, key):
+    return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0]), obs.shape[:-1] + (3,))  # hover when in control
+
+  step = jax.jit(jax.vmap(env.step))
+  state = jax.jit(jax.vmap(env.reset_in_world))(jax.random.split(jax.random.PRNGKey(8), 2), None, None, _pair(sched))
+  active, alarm = [], []
+  for _ in range(200):
+    state = step(state, policy(state.obs, None))
+    active.append(np.asarray(state.info["override_active"])[0])
+    alarm.append(np.asarray(state.info["alarm"])[0])
+  active, alarm = np.array(active), np.array(alarm)
+  t = (np.arange(200) + 1) * env.dt
+  assert alarm[(t > 13.2) & (t < 17.8)].min() == 1.0 and alarm[t < 12.9].max() == 0.0 and alarm[t > 18.2].max() == 0
+  # The override of a step follows the alarm at the start of that step.
+  np.testing.assert_array_equal(active[1:], alarm[:-1])
+  speed = np.linalg.norm(np.asarray(state.info["sim"]["truth"].vel)[0, :2])
+  assert speed > 3.0   # back under the autopilot, cruising again after the alarm cleared
