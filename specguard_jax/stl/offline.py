@@ -88,15 +88,22 @@ def robustness(formula: Union[str, ast.Formula], signals: Mapping[str, jnp.ndarr
   lengths (samples at index >= length are outside the trace; outputs there are meaningless).  params: constants
   substituted when `formula` is text.  Jittable (formula static), vmappable, differentiable where min/max are.
   """
+  f, sig, valid = _prepare(formula, signals, dt, length, params)
+  out = evaluate(f, sig, valid)
+  if valid is not None:
+    out = jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape))
+  return out
+
+
+def _prepare(formula, signals, dt, length, params):
+  """(Formula, stacked signals, validity mask [..., T] or None) shared by the offline entry points."""
   f = as_formula(formula, dt, params)
   sig = stack_signals(f, signals)
   valid = None
   if length is not None:
     t = next(iter(sig.values())).shape[-1]
     valid = jnp.arange(t) < jnp.asarray(length)[..., None]
-    out = evaluate(f, sig, valid)
-    return jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape))
-  return evaluate(f, sig, valid)
+  return f, sig, valid
 
 
 def evaluate_at0(f: ast.Formula, sig: Mapping[str, jnp.ndarray], valid: Optional[jnp.ndarray] = None) -> jnp.ndarray:
@@ -128,12 +135,7 @@ def episode_robustness(formula: Union[str, ast.Formula], signals: Mapping[str, j
                        dt: Optional[float] = None, length: Optional[jnp.ndarray] = None, params=None) -> jnp.ndarray:
   """Robustness of whole episodes at time 0, [...]: equals robustness(...)[..., 0], computed with reductions where
   possible (top-level always/eventually), so it is cheaper than the every-index form."""
-  f = as_formula(formula, dt, params)
-  sig = stack_signals(f, signals)
-  valid = None
-  if length is not None:
-    t = next(iter(sig.values())).shape[-1]
-    valid = jnp.arange(t) < jnp.asarray(length)[..., None]
+  f, sig, valid = _prepare(formula, signals, dt, length, params)
   out = evaluate_at0(f, sig, valid)
   if valid is not None:
     out = jnp.broadcast_to(out, jnp.broadcast_shapes(out.shape, valid.shape[:-1]))
