@@ -53,12 +53,7 @@ def make_eval(env, cfg, params):
   @jax.jit
   def evaluate(tr, scheds):
     def one(t, sched):
-      rd = traces.attacked_readings(t["readings"], sched, t["time"])
-      ek = traces.replay_ekf(env.ekf_cfg, jax.tree.map(lambda a: a[0], t["ekf"]), rd, DT)
-      alarm = jax.vmap(lambda tt: attacks.attack_active(sched, tt))(t["time"])
-      xr = recon.recon_scan(cfg, params, ek, rd, t["controls"], sched.mask, alarm, DT)
-      xe = jax.vmap(recon.input_vector)(ek, rd)
-      xt = jax.vmap(recon.true_input_vector)(t["truth"])
+      xe, xr, xt, alarm = recon.replay_under_attack(cfg, params, env.ekf_cfg, t, sched, DT)
       return xe, xr, xt, alarm, t["time"] - sched.onset
     return jax.vmap(one)(tr, scheds)
   return evaluate
@@ -75,13 +70,17 @@ def main(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   ap.add_argument("--missions", type=int, default=8, help="test missions (per attacked sensor)")
   ap.add_argument("--fit-missions", type=int, default=8, help="missions for the dynamics fit and DAE training")
-  ap.add_argument("--worlds", default="suburban_residential,urban_city_streets,urban_park,open_mountain")
+  ap.add_argument("--worlds", default="suburban_residential,urban_city_streets,urban_park,open_mountain",
+                  help="comma-separated world preset names")
   ap.add_argument("--seconds", type=float, default=40.0, help="recorded flight per mission (s)")
   ap.add_argument("--dae-steps", type=int, default=3000)
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--json", default="", help="write results here")
   a = ap.parse_args(argv)
   worlds = a.worlds.split(",")
+  bad = [w for w in worlds if w not in worlds_lib.PRESET_NAMES]
+  if bad:
+    ap.error(f"unknown world(s) {', '.join(bad)}; choose from {', '.join(worlds_lib.PRESET_NAMES)}")
   wid = [worlds_lib.PRESET_NAMES.index(w) for w in worlds]
   env = envs.make("drone", mission=MissionConfig.drone(min_duration_s=a.seconds + 10.0, max_duration_s=a.seconds + 60))
   n_ticks = int(round(a.seconds / DT))

@@ -32,13 +32,7 @@ def data():
   @jax.jit
   def evaluate(sched):
     t = jax.tree.map(lambda a: a[0], test)
-    rd = traces.attacked_readings(t["readings"], sched, t["time"])
-    ek = traces.replay_ekf(env.ekf_cfg, jax.tree.map(lambda a: a[0], t["ekf"]), rd, DT)
-    alarm = jax.vmap(lambda tt: attacks.attack_active(sched, tt))(t["time"])
-    xr = recon.recon_scan(cfg, params, ek, rd, t["controls"], sched.mask, alarm, DT)
-    xe = jax.vmap(recon.input_vector)(ek, rd)
-    xt = jax.vmap(recon.true_input_vector)(t["truth"])
-    return xe, xr, xt, alarm
+    return recon.replay_under_attack(cfg, params, env.ekf_cfg, t, sched, DT)
 
   return dict(env=env, test=test, params=params, evaluate=evaluate)
 

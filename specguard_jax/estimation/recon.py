@@ -29,10 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from specguard_jax import attacks as attacks_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax.estimation import checkpointer as ck
 from specguard_jax.estimation import dynamics as dyn
+from specguard_jax.estimation import traces
 from specguard_jax.types import SENSOR_NAMES
 
 INPUT_NAMES = ("pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z", "acc_x", "acc_y", "acc_z",
@@ -206,3 +208,19 @@ def recon_scan(cfg: ReconConfig, params: dyn.DynParams, ekf_states, readings, co
     return st, x
 
   return jax.lax.scan(body, init, (ekf_states, readings, controls, alarms))[1]
+
+
+def replay_under_attack(cfg: ReconConfig, params, ekf_cfg, trace, schedule, dt):
+  """Replay one recorded attack-free mission (estimation.traces.record, unbatched: leaves [T, ...]) with `schedule`
+  applied to its sensor stream and an oracle alarm (the attack window, diagnosis = its mask).
+
+  Returns (x_ekf [T, 15] of a fresh EKF on the attacked readings, x_rec [T, 15] selective reconstruction,
+  x_true [T, 15], alarm [T] bool).
+  """
+  rd = traces.attacked_readings(trace["readings"], schedule, trace["time"])
+  ek = traces.replay_ekf(ekf_cfg, jax.tree.map(lambda a: a[0], trace["ekf"]), rd, dt)
+  alarm = jax.vmap(lambda t: attacks_lib.attack_active(schedule, t))(trace["time"])
+  x_rec = recon_scan(cfg, params, ek, rd, trace["controls"], schedule.mask, alarm, dt)
+  x_ekf = jax.vmap(input_vector)(ek, rd)
+  x_true = jax.vmap(true_input_vector)(trace["truth"])
+  return x_ekf, x_rec, x_true, alarm
