@@ -37,6 +37,9 @@ from specguard_jax import rewards as rewards_lib
 from specguard_jax import sensors as sensors_lib
 from specguard_jax import specs as specs_lib
 from specguard_jax.autopilot import navigator as nav_lib
+from specguard_jax.estimation import model_file
+from specguard_jax.estimation import recon as recon_lib
+from specguard_jax.estimation import traces as traces_lib
 from specguard_jax.types import SensorReadings, TrueState
 
 ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
@@ -82,6 +85,8 @@ class EnvConfig:
   detector: str = "none"        # 'none' | 'residual' (CUSUM detector + diagnosis) | 'oracle' (true attack, delayed)
   detector_delay: float = 0.0   # oracle detection delay (s)
   detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
+  reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
+  dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
 
   def validate(self):
     for w in (self.world,) + tuple(self.worlds):
@@ -95,6 +100,8 @@ class EnvConfig:
       raise ValueError(f"unknown detector {self.detector!r}; choose one of {DETECTORS}")
     if self.control_mode == "reactive" and self.detector == "none":
       raise ValueError("control_mode='reactive' needs a detector ('residual' or 'oracle')")
+    if self.reconstruction and self.detector == "none":
+      raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
     if self.reward not in REWARDS:
       raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
@@ -134,6 +141,10 @@ class RAVEnv(Env):
     self.spec_table = config.specs or self._default_specs()
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
+    if config.reconstruction:
+      n_u = 4 if self.vehicle == "drone" else 2
+      self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)
+      self.recon_cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg)
 
   def _default_specs(self):
     return specs_lib.drone_specs() if self.vehicle == "drone" else specs_lib.rover_specs()
@@ -197,6 +208,9 @@ class RAVEnv(Env):
     }
     if self.config.detector != "none":
       sim["det"] = detection_lib.detector_init(self.det_cfg)
+    if self.config.reconstruction:
+      sim["recon"] = recon_lib.recon_init(self.recon_cfg, ekf)
+      sim["x_rec"] = recon_lib.input_vector(ekf, readings)
     signals = self._signals(world, mission, truth, nav)
     episode = {
         "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
@@ -312,14 +326,20 @@ class RAVEnv(Env):
     elif cfg.detector == "oracle":
       sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
                                                       cfg.detector_delay))
+    est, rd_ctrl = ekf, readings
+    if cfg.reconstruction:  # DeLorean: mission logic and autopilot run on the reconstructed state while under attack
+      u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
+      rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
+                                                     u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt)
+      sim = dict(sim, recon=rec, x_rec=x_rec)
     landed = self._vehicle_landed(sim)
-    nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, ekf.pos, landed, cfg.tick_dt)
+    nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
     vel_sp = jnp.where(use_override, override_vel, vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
-    sim = dict(sim, sensors=sens_state, readings=readings, ekf=ekf, nav=nav, gust=gust)
+    sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
     data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
-    return data, sim
+    return data, dict(sim, readings=readings, ekf=ekf)
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""
@@ -400,20 +420,24 @@ class RAVEnv(Env):
     unit direction to the nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude,
     horizontal speed, waypoint slack (s)."""
     ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
-    pos = ekf.pos
+    if self.config.reconstruction:   # x'_t as reconstructed (equals the EKF's while the alarm is down)
+      x = sim["x_rec"]
+      pos, vel, acc, euler = x[0:3], x[3:6], x[6:9], x[9:12]
+    else:
+      pos, vel, euler = ekf.pos, ekf.vel, ekf_lib.ekf_euler(ekf)
+      acc = math3d.quat_to_rot(ekf.quat) @ (readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
     wp = mission.waypoints
     target = wp[nav.target]
     nxt = wp[jnp.minimum(nav.target + 1, mission.n_waypoints - 1)]
     leg_next = nxt - target
     leg_next = leg_next / (jnp.linalg.norm(leg_next) + 1e-6)
-    acc = math3d.quat_to_rot(ekf.quat) @ (readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
     qpos = self._query_pos(pos)
     d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_sdf(world, p))(qpos)
     q = worlds_lib.world_queries(world, mission, qpos, nav.target)
     obs = jnp.concatenate([
-        pos - target, ekf.vel, acc, ekf_lib.ekf_euler(ekf), leg_next, -g_obs,
+        pos - target, vel, acc, euler, leg_next, -g_obs,
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
-                   pos[2] - self._ground_offset(), jnp.linalg.norm(ekf.vel[:2]),
+                   pos[2] - self._ground_offset(), jnp.linalg.norm(vel[:2]),
                    jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
     return obs.astype(jnp.float32)
 
@@ -421,7 +445,8 @@ class RAVEnv(Env):
     """Action [3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""
     a = jnp.asarray(action, jnp.float32)[:3]
     if self.config.override_frame == "body":
-      yaw = ekf_lib.ekf_euler(sim["ekf"])[2]
+      est = sim["recon"].shadow if self.config.reconstruction else sim["ekf"]
+      yaw = ekf_lib.ekf_euler(est)[2]
       xy = math3d.yaw_rot2(yaw) @ a[:2]
       a = jnp.concatenate([xy, a[2:3]])
     return jnp.nan_to_num(a)

@@ -152,12 +152,22 @@ def _start(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state
 
 def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
                  compromised_mask, alarm, dt):
+  """One autopilot tick; see recon_tick. Returns (new ReconState, x_reconstructed [15])."""
+  new, x_rec, _, _ = recon_tick(cfg, params, state, ekf_state, readings, controls, compromised_mask, alarm, dt)
+  return new, x_rec
+
+
+def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
+               compromised_mask, alarm, dt):
   """One autopilot tick of dt (s).
 
   ekf_state: the autopilot's EKFState after fusing `readings` (possibly attacked).  readings: SensorReadings of this
   tick.  controls: [n_u] controls applied during the previous tick (drone: sim['vehicle']['rotors'] before the tick's
   vehicle update).  compromised_mask: [6] 0/1 (SENSOR_NAMES order) from the diagnosis.  alarm: [] 0/1 detector flag.
-  Returns (new ReconState, x_reconstructed [15] (INPUT_NAMES)); with the alarm down x_reconstructed = x'_t measured.
+  Returns (new ReconState, x_reconstructed [15] (INPUT_NAMES), trusted EKFState, trusted SensorReadings): with the
+  alarm down x_reconstructed = x'_t measured and the trusted estimate/readings are the inputs; with it up they are
+  the shadow filter and the readings it fused (compromised gyro/accel replaced by the model), which a controller can
+  fly on (DeLorean: the autopilot runs on reconstructed states).
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
@@ -191,10 +201,11 @@ def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf
   x_rec = jnp.where(use, x_shadow, x_meas)
 
   ckpt = ck.ckpt_update(state.ckpt, _entry(ekf_state, readings), controls, alarm)
-  new = ReconState(ckpt=ckpt, shadow=jax.tree.map(lambda a, b: jnp.where(alarm, a, b), shadow, ekf_state),
-                   rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
+  trusted = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), shadow, ekf_state)
+  trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)
+  new = ReconState(ckpt=ckpt, shadow=trusted, rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
                    since=jnp.where(alarm, state.since + dt, 0.0))
-  return new, x_rec
+  return new, x_rec, trusted, trusted_rd
 
 
 def recon_scan(cfg: ReconConfig, params: dyn.DynParams, ekf_states, readings, controls, compromised_mask, alarms,
