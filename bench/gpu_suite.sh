@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One device call's worth of GPU measurements (see BENCHMARKS.md). Usage on the GPU machine, from the repo root:
-#   bash bench/gpu_suite.sh env|stl|fly [OUT_DIR]
+#   bash bench/gpu_suite.sh env|stl|fly|train [OUT_DIR]   (train: TRAIN_ARGS='--steps N ...')
+#   bash bench/gpu_suite.sh cmd OUT_DIR python3 ...          (any command with the wheels installed)
 # Expects the wheels of ../shared/tools/gpu-wheels.sh in .whl/ (mujoco, mujoco-mjx, brax are not in that image).
 set -uo pipefail
 what=${1:-env}
@@ -20,4 +21,7 @@ case "$what" in
          python3 -m envs.fly --vehicle $v --world all --missions ${MISSIONS:-1000} --json > "$out/fly_$v.json" 2> "$out/fly_$v.err"
          python3 -c "import json; d=json.load(open('$out/fly_$v.json')); [print('$v', r['world'], r['missions'], r['completion_rate'], r['collisions'], r['geofence_entries'], r['crashes'], r['stalls'], r['nan_resets'], r['truncated'], r['env_steps'], round(r['wall_s'],1)) for r in d['worlds']]" || tail -5 "$out/fly_$v.err"
        done ;;
+  train) python3 train.py ${TRAIN_ARGS:-} --out "$out/run" 2>&1 | grep --line-buffered -v "import warp" | tee "$out/train.txt"
+         cp "$out/run/summary.json" "$out/" 2>/dev/null; rm -rf "$out/run/checkpoints" ;;
+  cmd) shift 2; "$@" 2>&1 | grep --line-buffered -v "import warp" ;;
 esac

@@ -17,14 +17,17 @@ from brax.envs.base import State, Wrapper
 
 from envs.base import tree_where
 
-_POOL_KEYS = ("reset_pool", "pool_cursor", "pool_refresh", "reset_key", "last_episode")
+_POOL_KEYS = ("reset_pool", "pool_cursor", "pool_refresh", "reset_key", "last_episode", "final_obs",
+              "final_spec_robustness")
 
 
 class AutoReset(Wrapper):
   """Batched auto-reset from a refreshed pool of initial states; wrap a VmapWrapper-ed env (leading batch axis B).
 
   After a step, a finished env carries the fresh episode's obs/info but the finished step's reward, done and
-  metrics; `info['truncation']` is the finished step's and `info['last_episode']` the finished episode's flags.
+  metrics; `info['truncation']` is the finished step's, `info['last_episode']` the finished episode's flags,
+  `info['final_obs']` the observation the step produced before any reset (for bootstrapping truncated episodes) and
+  `info['final_spec_robustness']` the finished episode's per-spec robustness.
   """
 
   def __init__(self, env, pool_size: int | None = None, refresh: int | None = None):
@@ -43,7 +46,8 @@ class AutoReset(Wrapper):
     k_pool, k_next = jax.random.split(jax.random.fold_in(rng[0], 0x5eed))
     pool = self.env.reset(jax.random.split(k_pool, pool_n))
     info = dict(state.info, reset_pool=pool, pool_cursor=jnp.zeros((), jnp.int32),
-                pool_refresh=jnp.zeros((), jnp.int32), reset_key=k_next, last_episode=state.info["episode"])
+                pool_refresh=jnp.zeros((), jnp.int32), reset_key=k_next, last_episode=state.info["episode"],
+                final_obs=state.obs, final_spec_robustness=state.info["spec_robustness"])
     return state.replace(info=info)
 
   def step(self, state: State, action: jax.Array) -> State:
@@ -65,7 +69,8 @@ class AutoReset(Wrapper):
     new = self.env.reset(jax.random.split(sub, refresh))
     slots = (ref_ptr + jnp.arange(refresh)) % pool_n
     pool = jax.tree.map(lambda p, n: p.at[slots].set(n), pool, new)
-    new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool,
+    new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=out.obs,
+                    final_spec_robustness=out.info["spec_robustness"],
                     pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32),
                     pool_refresh=((ref_ptr + refresh) % pool_n).astype(jnp.int32), reset_key=key,
                     last_episode=out.info["episode"])

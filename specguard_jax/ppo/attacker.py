@@ -1,0 +1,129 @@
+"""The attack agent's side of the game (paper App. "Multi-Agent Training"): observation, action -> attack, reward.
+
+Input S = {u'_t, x'_t, B, t_a} (paper): SpecGuard's velocity setpoint this step (normalised by its speeds) [3],
+SpecGuard's state input x'_t (first 12 entries of the env observation: position relative to the target, velocity,
+acceleration, Euler angles) [12], the bias being injected per sensor, normalised by the sensor's Table 3 maximum
+[6 x 3], the one-hot target sensor [6], t_a (attack time used / budget) [1], flags attack on / window closed / detector
+alarm [3], mission progress (time / nominal duration) [1] and obstacle distance / 50 [1]: N_OBS = 45.
+
+Output A = {target sensor, biases, timing}: a diagonal Gaussian over a raw vector [10] read as
+  [0:6]  sensor scores: argmax over the attackable sensors picks the target when the attack starts (then latched);
+  [6:9]  bias: tanh -> fraction of the sensor's Table 3 maximum per component (norm clipped to that maximum); the
+         agent sets it every step, so ramps (stealthy) and steps (overt) are both reachable;
+  [9]    launch: > 0 keeps the attack on. One contiguous window per episode: it starts the first time launch > 0,
+         ends the first time launch <= 0 after that or when `max_duration_s` is used up.
+The env sees an ordinary AttackSchedule (specguard_jax.attacks) rebuilt each step, so fusion gating, detection,
+diagnosis and reconstruction are exercised exactly as for scripted attacks.
+
+Reward R_AA = alpha * R_disruption + beta * R_stealthiness + gamma * R_complexity with
+  R_disruption = -r_SG (SpecGuard's per-step compliance reward: the zero-sum term),
+  R_stealthiness = 1 per step with the attack on and the detector's alarm down,
+  R_complexity = attack on x risk, risk = clip(1 - obstacle_distance / 20 m, 0, 1) (launching near obstacles).
+Defaults alpha=1, beta=gamma=0 make the game exactly zero-sum (R_AA = -R_SG).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import State, Wrapper
+
+from specguard_jax import attacks as attacks_lib
+from specguard_jax.types import SENSOR_NAMES
+
+N_ACT = 10
+N_OBS = 45
+_HI = np.array([attacks_lib.BIAS_RANGES[n][1] for n in SENSOR_NAMES], np.float32)
+_DIMS = np.array([[float(i < attacks_lib.BIAS_DIMS[n]) for i in range(3)] for n in SENSOR_NAMES], np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class AttackerConfig:
+  """sensors: attackable sensors.  max_duration_s: attack-time budget per episode (s).  scale: multiplies the
+  Table 3 maxima.  alpha / beta / gamma: reward weights (see module docstring)."""
+  sensors: tuple = SENSOR_NAMES
+  max_duration_s: float = 40.0
+  scale: float = 1.0
+  alpha: float = 1.0
+  beta: float = 0.0
+  gamma: float = 0.0
+
+  def __post_init__(self):
+    bad = [s for s in self.sensors if s not in SENSOR_NAMES]
+    if bad or not self.sensors:
+      raise ValueError(f"unknown or no attack sensor(s) {bad}; choose from {', '.join(SENSOR_NAMES)}")
+    if self.max_duration_s <= 0:
+      raise ValueError("attacker max_duration_s must be > 0")
+
+
+def _adv_init():
+  return {"target": jnp.zeros((), jnp.int32), "started": jnp.zeros((), bool), "ended": jnp.zeros((), bool),
+          "onset": jnp.full((), 1e9, jnp.float32), "used": jnp.zeros(()), "bias": jnp.zeros((6, 3)), "on": jnp.zeros(())}
+
+
+class AttackerEnv(Wrapper):
+  """Unbatched wrapper: step(state, action) with action = concat(SpecGuard action [3], attacker raw [10])."""
+
+  def __init__(self, env, cfg: AttackerConfig, speeds):
+    super().__init__(env)
+    self.cfg = cfg
+    self.speeds = np.asarray(speeds, np.float32)
+    self.allowed = np.array([s in cfg.sensors for s in SENSOR_NAMES])
+
+  @property
+  def action_size(self) -> int:
+    return 3 + N_ACT
+
+  def reset(self, rng):
+    s = self.env.reset(rng)
+    none = jax.tree.map(lambda x: jnp.asarray(x, x.dtype), attacks_lib.no_attack())  # strong-typed leaves
+    return s.replace(info=dict(s.info, adv=_adv_init(), attack=none, aa_extra=jnp.zeros(())))
+
+  def observe(self, state: State, sg_setpoint) -> jax.Array:
+    """Attacker observation [45] given SpecGuard's velocity setpoint [3] (m/s) of this step."""
+    info, adv = state.info, state.info["adv"]
+    alarm = info.get("alarm", jnp.zeros(()))
+    progress = info["time"] / jnp.maximum(info["mission"].nominal_duration, 1.0)
+    return jnp.concatenate([
+        sg_setpoint / jnp.maximum(self.speeds, 1e-3), state.obs[:12],
+        (adv["bias"] / (_HI[:, None] * self.cfg.scale)).reshape(-1), jax.nn.one_hot(adv["target"], 6) * adv["started"],
+        jnp.stack([adv["used"] / self.cfg.max_duration_s, adv["on"], adv["ended"].astype(jnp.float32), alarm,
+                   jnp.minimum(progress, 2.0), jnp.minimum(state.obs[18], 50.0) / 50.0])]).astype(jnp.float32)
+
+  def step(self, state: State, action) -> State:
+    cfg, info = self.cfg, state.info
+    adv = info["adv"]
+    sg_action, raw = action[:3], action[3:]
+    t = info["time"]
+    scores = jnp.where(jnp.asarray(self.allowed), raw[:6], -jnp.inf)
+    launch = raw[9] > 0.0
+    budget_left = adv["used"] < cfg.max_duration_s
+    on = launch & ~adv["ended"] & budget_left
+    target = jnp.where(adv["started"], adv["target"], jnp.argmax(scores)).astype(jnp.int32)
+    hi = jnp.asarray(_HI)[target] * cfg.scale
+    b = jnp.tanh(raw[6:9]) * hi * jnp.asarray(_DIMS)[target]
+    b = b * jnp.minimum(1.0, hi / (jnp.linalg.norm(b) + 1e-9))
+    onset = jnp.where(on & ~adv["started"], t, adv["onset"])
+    onehot = jax.nn.one_hot(target, 6)
+    bias = onehot[:, None] * b[None, :] * on
+    sched = attacks_lib.AttackSchedule(
+        mask=jnp.asarray(onehot * on, jnp.float32), bias=jnp.asarray(bias, jnp.float32),
+        onset=jnp.asarray(jnp.where(on, t, 1e9), jnp.float32), duration=jnp.full((), 1e9, jnp.float32),
+        ramp_time=jnp.ones(()), profile=jnp.asarray(0, jnp.int32))
+    out = self.env.step(state.replace(info=dict(info, attack=sched)), sg_action)
+    started = adv["started"] | on
+    ended = adv["ended"] | (adv["started"] & ~on)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # strong types: a weak-typed carry would recompile the step
+    new_adv = {"target": target, "started": started, "ended": ended, "onset": f32(onset),
+               "used": f32(adv["used"] + on * self.env.dt), "bias": f32(bias), "on": f32(on)}
+    alarm = out.info.get("alarm", jnp.zeros(()))
+    risk = jnp.clip(1.0 - out.obs[18] / 20.0, 0.0, 1.0)
+    extra = f32(cfg.beta * on * (1.0 - alarm) + cfg.gamma * on * risk)
+    return out.replace(info=dict(out.info, adv=new_adv, aa_extra=extra))
+
+  def reward(self, sg_reward, extra):
+    """R_AA from SpecGuard's (shaped) reward and the stealth/complexity terms info['aa_extra']."""
+    return self.cfg.alpha * (-sg_reward) + extra

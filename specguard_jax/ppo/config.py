@@ -1,0 +1,151 @@
+"""TrainConfig: every knob of a SpecGuard training run (frozen; JSON-loadable; validated with one-line errors)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from specguard_jax.types import SENSOR_NAMES
+
+VARIANTS = ("rc", "pc")
+VEHICLES = ("drone", "rover")
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+  """PPO hyperparameters of one agent. lr: Adam step size (linearly decayed to lr * lr_end_frac when
+  lr_schedule='linear').  unroll_length: env steps per env per iteration.  minibatches x epochs per iteration."""
+  lr: float = 3e-4
+  lr_schedule: str = "constant"   # 'constant' | 'linear'
+  lr_end_frac: float = 0.1
+  gamma: float = 0.99
+  gae_lambda: float = 0.95
+  clip_eps: float = 0.2
+  value_clip_eps: float = 0.0     # > 0: clipped value loss
+  vf_coef: float = 0.5
+  ent_coef: float = 0.003
+  max_grad_norm: float = 0.5
+  num_minibatches: int = 8
+  update_epochs: int = 4
+  normalize_advantage: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """A training run. Sizes: num_envs parallel episodes, unroll_length steps each per iteration; phase budgets in env
+  steps (phase1_steps without attacks, phase2_steps adversarial; 0 skips a phase).
+
+  variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
+  (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
+  better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).  reconstruction: state reconstruction in the loop in
+  phase 2 (False = the ablation).  detector: 'residual' (CUSUM, deployment-faithful) or 'oracle' (+ detector_delay).
+  alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
+  converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
+  iteration, averaged over the window of iterations).  completion_bonus: reward on mission completion in units of the
+  maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
+  finishing the mission never looks worse than dawdling.
+  """
+  vehicle: str = "drone"
+  variant: str = "rc"
+  worlds: tuple = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
+  reward: str = "compliance"
+  action: str = "gaussian"
+  hidden: tuple = (256, 256, 256)
+  activation: str = "tanh"
+  speeds: tuple = (8.0, 8.0, 2.0)   # velocity-setpoint scale per axis (m/s), yaw frame
+  num_envs: int = 256
+  unroll_length: int = 32
+  phase1_steps: int = 2_000_000
+  phase2_steps: int = 2_000_000
+  iters_per_call: int = 4
+  seed: int = 0
+  reconstruction: bool = True
+  detector: str = "residual"
+  detector_delay: float = 0.5
+  attack_sensors: tuple = SENSOR_NAMES
+  attack_max_duration_s: float = 40.0
+  attack_alpha: float = 1.0
+  attack_beta: float = 0.0
+  attack_gamma: float = 0.0
+  alternate_iters: int = 10
+  converge_eps: float = 0.0
+  converge_window: int = 20
+  completion_bonus: float = -1.0
+  obs_clip: float = 10.0
+  sg: PPOConfig = PPOConfig()
+  aa: PPOConfig = PPOConfig(ent_coef=0.01)
+  checkpoint_every_s: float = 120.0
+  max_nan_skips: int = 100
+
+  def validate(self):
+    from envs import worlds as worlds_lib
+    if self.vehicle not in VEHICLES:
+      raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
+    if self.variant not in VARIANTS:
+      raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
+    bad = [w for w in self.worlds if w not in worlds_lib.PRESETS]
+    if bad or not self.worlds:
+      raise ValueError(f"unknown or no world(s) {bad}; choose from {', '.join(worlds_lib.PRESETS)}")
+    if self.reward not in ("compliance", "binary"):
+      raise ValueError(f"unknown reward {self.reward!r}; choose compliance or binary")
+    if self.action not in ("gaussian", "discrete"):
+      raise ValueError(f"unknown action head {self.action!r}; choose gaussian or discrete")
+    if self.detector not in ("residual", "oracle"):
+      raise ValueError(f"unknown detector {self.detector!r}; choose residual or oracle")
+    bad = [s for s in self.attack_sensors if s not in SENSOR_NAMES]
+    if bad or not self.attack_sensors:
+      raise ValueError(f"unknown or no attack sensor(s) {bad}; choose from {', '.join(SENSOR_NAMES)}")
+    for name in ("num_envs", "unroll_length", "iters_per_call", "alternate_iters", "converge_window"):
+      if getattr(self, name) < 1:
+        raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+    if self.phase1_steps < 0 or self.phase2_steps < 0 or self.phase1_steps + self.phase2_steps == 0:
+      raise ValueError("phase1_steps and phase2_steps must be >= 0 and not both 0")
+    for agent, p in (("sg", self.sg), ("aa", self.aa)):
+      if (self.num_envs * self.unroll_length) % p.num_minibatches:
+        raise ValueError(f"num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible by "
+                         f"{agent}.num_minibatches ({p.num_minibatches})")
+      if p.lr_schedule not in ("constant", "linear"):
+        raise ValueError(f"unknown {agent}.lr_schedule {p.lr_schedule!r}; choose constant or linear")
+      if not 0 < p.gamma <= 1 or not 0 <= p.gae_lambda <= 1:
+        raise ValueError(f"{agent}.gamma must be in (0, 1] and gae_lambda in [0, 1]")
+    if len(self.speeds) != 3 or min(self.speeds) < 0:
+      raise ValueError("speeds must be 3 non-negative numbers (m/s)")
+    return self
+
+  @property
+  def steps_per_iter(self) -> int:
+    return self.num_envs * self.unroll_length
+
+  def to_dict(self) -> dict:
+    return dataclasses.asdict(self)
+
+
+def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
+  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys are one-line errors."""
+  base = base or TrainConfig()
+  fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+  kw = {}
+  for k, v in d.items():
+    if k not in fields:
+      raise ValueError(f"unknown config key {k!r}; valid: {', '.join(sorted(fields))}")
+    if k in ("sg", "aa"):
+      sub = {f.name for f in dataclasses.fields(PPOConfig)}
+      bad = sorted(set(v) - sub)
+      if bad:
+        raise ValueError(f"unknown {k} PPO key(s) {', '.join(bad)}; valid: {', '.join(sorted(sub))}")
+      v = dataclasses.replace(getattr(base, k), **v)
+    elif isinstance(v, list):
+      v = tuple(v)
+    kw[k] = v
+  return dataclasses.replace(base, **kw)
+
+
+def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
+  try:
+    with open(path) as f:
+      d = json.load(f)
+  except (OSError, json.JSONDecodeError) as e:
+    raise ValueError(f"cannot read config file {path}: {e}") from None
+  if not isinstance(d, dict):
+    raise ValueError(f"config file {path} must hold a JSON object")
+  return from_dict(d, base)

@@ -1,0 +1,148 @@
+"""PPO pieces kept apart from acting: agent state, GAE, the clipped loss and the minibatch-epoch update.
+
+Shapes: T = unroll length, B = envs. All functions are pure and jittable.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.training.acme import running_statistics, specs
+from flax import struct
+
+from specguard_jax.ppo import networks
+from specguard_jax.ppo.config import PPOConfig
+
+
+@struct.dataclass
+class AgentState:
+  """One learner: policy + value params, their Adam state, the observation normaliser and update count."""
+  params: Any          # {'policy': ..., 'value': ...}
+  opt_state: Any
+  normalizer: running_statistics.RunningStatisticsState
+  updates: jnp.ndarray
+
+
+@struct.dataclass
+class Agent:
+  """Static description of a learner (not a pytree of arrays): its policy, value net, optimiser and PPO config."""
+  policy: networks.Policy = struct.field(pytree_node=False)
+  value: Any = struct.field(pytree_node=False)
+  optimizer: Any = struct.field(pytree_node=False)
+  ppo: PPOConfig = struct.field(pytree_node=False)
+  obs_clip: float = struct.field(pytree_node=False, default=10.0)
+
+  def init(self, key, n_obs: int) -> AgentState:
+    k1, k2 = jax.random.split(key)
+    params = {"policy": self.policy.init(k1, n_obs),
+              "value": self.value.init(k2, jnp.zeros((1, n_obs)))["params"]}
+    norm = running_statistics.init_state(specs.Array((n_obs,), jnp.float32))
+    return AgentState(params=params, opt_state=self.optimizer.init(params), normalizer=norm,
+                      updates=jnp.zeros((), jnp.int32))
+
+  def normalize(self, state: AgentState, obs):
+    return jnp.clip(running_statistics.normalize(obs, state.normalizer), -self.obs_clip, self.obs_clip)
+
+  def act(self, state: AgentState, obs, key):
+    """(action, log_prob, value) for raw observations obs [.., n_obs]."""
+    x = self.normalize(state, obs)
+    a, logp = self.policy.sample(state.params["policy"], x, key)
+    return a, logp, self.value_of(state, obs, normalized=x)
+
+  def value_of(self, state: AgentState, obs, normalized=None):
+    x = self.normalize(state, obs) if normalized is None else normalized
+    return self.value.apply({"params": state.params["value"]}, x)[..., 0]
+
+
+def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig, total_updates: int,
+               obs_clip: float = 10.0) -> Agent:
+  """Agent with Adam (global-norm gradient clipping, constant or linearly decaying step size)."""
+  if ppo.lr_schedule == "linear":
+    lr = optax.linear_schedule(ppo.lr, ppo.lr * ppo.lr_end_frac, max(1, total_updates))
+  else:
+    lr = ppo.lr
+  opt = optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm), optax.adam(lr, eps=1e-5))
+  return Agent(policy=policy, value=networks.value_module(value_hidden, activation), optimizer=opt, ppo=ppo,
+               obs_clip=obs_clip)
+
+
+def gae(rewards, values, next_values, terminated, done, gamma: float, lam: float):
+  """Generalised advantage estimation over [T, B].
+
+  next_values[t] = V of the observation step t produced (before any auto-reset), so a truncated episode is
+  bootstrapped from its own last state; terminated[t] zeroes the bootstrap (termination is not bootstrapped);
+  done[t] cuts the GAE recursion at episode ends. Returns (advantages, value targets), both [T, B].
+  """
+  delta = rewards + gamma * next_values * (1.0 - terminated) - values
+
+  def body(carry, xs):
+    d, dn = xs
+    adv = d + gamma * lam * (1.0 - dn) * carry
+    return adv, adv
+
+  _, adv = jax.lax.scan(body, jnp.zeros_like(values[0]), (delta, done), reverse=True)
+  return adv, adv + values
+
+
+def ppo_loss(agent: Agent, params, normalizer, batch):
+  """Clipped PPO loss on a minibatch dict (obs, action, logp, value, adv, target, mask [N]). Returns (loss, aux)."""
+  p = agent.ppo
+  x = jnp.clip(running_statistics.normalize(batch["obs"], normalizer), -agent.obs_clip, agent.obs_clip)
+  logp, ent = agent.policy.log_prob_entropy(params["policy"], x, batch["action"])
+  v = agent.value.apply({"params": params["value"]}, x)[..., 0]
+  mask = batch["mask"]
+  n = jnp.maximum(jnp.sum(mask), 1.0)
+  adv = batch["adv"]
+  if p.normalize_advantage:
+    mu = jnp.sum(adv * mask) / n
+    sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8
+    adv = (adv - mu) / sd
+  ratio = jnp.exp(logp - batch["logp"])
+  surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - p.clip_eps, 1.0 + p.clip_eps) * adv)
+  pg_loss = -jnp.sum(surr * mask) / n
+  v_err = (v - batch["target"]) ** 2
+  if p.value_clip_eps > 0:
+    v_clip = batch["value"] + jnp.clip(v - batch["value"], -p.value_clip_eps, p.value_clip_eps)
+    v_err = jnp.maximum(v_err, (v_clip - batch["target"]) ** 2)
+  v_loss = 0.5 * jnp.mean(v_err)
+  entropy = jnp.sum(ent * mask) / n
+  loss = pg_loss + p.vf_coef * v_loss - p.ent_coef * entropy
+  approx_kl = jnp.sum(((ratio - 1.0) - (logp - batch["logp"])) * mask) / n
+  return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": approx_kl}
+
+
+def update(agent: Agent, state: AgentState, batch, key):
+  """Normaliser update on the batch's observations, then epochs x minibatches of Adam on the PPO loss.
+
+  batch: dict of [T, B, ...] arrays (see ppo_loss). A non-finite gradient step is skipped (params unchanged) and
+  counted in aux['nan_skips'], so NaNs never reach the parameters.
+  """
+  p = agent.ppo
+  flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), batch)
+  n = flat["mask"].shape[0]
+  normalizer = running_statistics.update(state.normalizer, flat["obs"])
+  grad_fn = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
+
+  def minibatch(carry, mb):
+    params, opt_state, skips = carry
+    (loss, aux), g = grad_fn(agent, params, normalizer, mb)
+    upd, new_opt = agent.optimizer.update(g, opt_state, params)
+    new_params = optax.apply_updates(params, upd)
+    ok = jnp.isfinite(loss) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(g)]))
+    params = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new_params, params)
+    opt_state = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new_opt, opt_state)
+    return (params, opt_state, skips + (~ok).astype(jnp.int32)), dict(aux, loss=loss)
+
+  def epoch(carry, k):
+    perm = jax.random.permutation(k, n)
+    mbs = jax.tree.map(lambda a: a[perm].reshape((p.num_minibatches, -1) + a.shape[1:]), flat)
+    return jax.lax.scan(minibatch, carry, mbs)
+
+  init = (state.params, state.opt_state, jnp.zeros((), jnp.int32))
+  (params, opt_state, skips), aux = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
+  aux = jax.tree.map(jnp.mean, aux)
+  aux["nan_skips"] = skips
+  return AgentState(params=params, opt_state=opt_state, normalizer=normalizer, updates=state.updates + 1), aux

@@ -1,0 +1,296 @@
+"""The host side of a training run: phases, logging, checkpoints, resume, export. The device does everything else.
+
+run_dir layout:
+  config.json          the TrainConfig
+  metrics.jsonl        one line per iteration (phase, env steps, returns, SVR, RSR, collision rate, SPS, losses)
+  tb/                  TensorBoard events (tensorboardX)
+  checkpoints/<n>/     Orbax checkpoints of the whole Carry (both agents' params + Adam states + normalisers, env
+                       states, rng, iteration) + host state (phase, calls, convergence history)
+  policy.msgpack, policy_config.json, policy.onnx   the trained SpecGuard policy (specguard_jax.export)
+  summary.json         final figures
+Resume (`train(..., resume=True)`) restores the newest checkpoint and continues; with the same config the result is
+bit-identical to an uninterrupted run (on CPU; tests/test_train.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import signal
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from specguard_jax.ppo import attacker as attacker_lib
+from specguard_jax.ppo import iteration as it
+from specguard_jax.ppo.config import TrainConfig, from_dict
+
+RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
+
+
+def derived(m: dict) -> dict:
+  """Per-iteration rates from the summed counts of ppo.iteration (NaN where no episode finished)."""
+  eps = m["episodes"]
+  f = lambda a, b: float(a / b) if b > 0 else float("nan")
+  out = {f"{k}_rate": f(m[k], eps) for k in RATE_KEYS}
+  out["svr"] = out.pop("violated_rate")
+  out["rsr"] = f(m["attacked_complete"], m["attacked"])
+  out["svr_attacked"] = f(m["attacked_violated"], m["attacked"])
+  out["return"] = f(m["return_sum"], eps)
+  out["return_aa"] = f(m["return_aa_sum"], eps)
+  return out
+
+
+class _Logger:
+  def __init__(self, run_dir: str):
+    self.f = open(os.path.join(run_dir, "metrics.jsonl"), "a")
+    try:
+      from tensorboardX import SummaryWriter
+      self.tb = SummaryWriter(os.path.join(run_dir, "tb"))
+    except Exception as e:  # noqa: BLE001 - TensorBoard is optional at run time
+      print(f"[train] TensorBoard logging off ({type(e).__name__}: {e})", file=sys.stderr)
+      self.tb = None
+
+  def log(self, rec: dict):
+    self.f.write(json.dumps(rec) + "\n")
+    if self.tb is not None:
+      for k, v in rec.items():
+        if isinstance(v, (int, float)) and k != "env_steps" and math.isfinite(v):
+          self.tb.add_scalar(k, v, rec["env_steps"])
+
+  def close(self):
+    self.f.close()
+    if self.tb is not None:
+      self.tb.close()
+
+
+class _Progress:
+  """One-line progress: phase, steps, ETA, SPS, SVR, RSR (carriage return on a terminal, a line every 10 s else)."""
+
+  def __init__(self, enabled: bool):
+    self.enabled = enabled
+    self.tty = sys.stderr.isatty()
+    self.last = 0.0
+
+  def show(self, phase, steps, total, sps, svr, rsr, ret, force=False):
+    if not self.enabled:
+      return
+    now = time.time()
+    if not self.tty and not force and now - self.last < 10.0:
+      return
+    self.last = now
+    eta = (total - steps) / sps if sps > 0 else float("nan")
+    eta_s = time.strftime("%H:%M:%S", time.gmtime(eta)) if math.isfinite(eta) else "--:--:--"
+    frac = steps / max(total, 1)
+    bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
+    line = (f"phase {phase} [{bar}] {steps / 1e6:7.2f}/{total / 1e6:.2f}M steps  ETA {eta_s}  "
+            f"{sps / 1e3:8.1f}k sps  SVR {svr:5.3f}  RSR {rsr:5.3f}  return {ret:8.2f}")
+    print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
+
+
+def _nanmean(xs):
+  xs = [x for x in xs if x == x]
+  return float(np.mean(xs)) if xs else float("nan")
+
+
+def converged(history, window: int, eps: float) -> bool:
+  """Paper Algorithm 2's stop rule: |d/dt mean return| < eps for both agents, estimated as the change between the
+  means of the last two windows of iterations divided by the window length."""
+  if eps <= 0 or len(history) < 2 * window:
+    return False
+  h = np.asarray(history[-2 * window:], np.float64)
+  d = np.abs(np.nanmean(h[window:], 0) - np.nanmean(h[:window], 0)) / window
+  return bool(np.all(d < eps))
+
+
+def _checkpointer(run_dir):
+  import orbax.checkpoint as ocp
+  path = os.path.abspath(os.path.join(run_dir, "checkpoints"))
+  return ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True))
+
+
+def _save(mgr, step: int, carry, host: dict):
+  import orbax.checkpoint as ocp
+  mgr.save(step, args=ocp.args.Composite(carry=ocp.args.StandardSave(carry), host=ocp.args.JsonSave(host)),
+           force=True)
+  mgr.wait_until_finished()
+
+
+def _restore_host(mgr):
+  import orbax.checkpoint as ocp
+  step = mgr.latest_step()
+  if step is None:
+    return None, None
+  return step, mgr.restore(step, args=ocp.args.Composite(host=ocp.args.JsonRestore()))["host"]
+
+
+def _restore_carry(mgr, step, abstract):
+  import orbax.checkpoint as ocp
+  return mgr.restore(step, args=ocp.args.Composite(carry=ocp.args.StandardRestore(abstract)))["carry"]
+
+
+def load_run_config(run_dir: str) -> TrainConfig:
+  path = os.path.join(run_dir, "config.json")
+  if not os.path.exists(path):
+    raise ValueError(f"cannot resume: {path} not found (not a run directory)")
+  with open(path) as f:
+    return from_dict(json.load(f)).validate()
+
+
+def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: bool = True,
+          stop_after_calls: int | None = None, export: bool = True, log=print) -> dict:
+  """Train SpecGuard (phase 1 then phase 2) into run_dir; returns the summary dict (also written to summary.json).
+
+  resume: continue from run_dir's newest checkpoint (its config.json wins over `cfg`).  stop_after_calls: stop
+  (after checkpointing) once this many compiled calls ran in this process: a deterministic stand-in for a kill.
+  """
+  os.makedirs(run_dir, exist_ok=True)
+  if resume:
+    cfg = load_run_config(run_dir)
+  else:
+    cfg.validate()
+    with open(os.path.join(run_dir, "config.json"), "w") as f:
+      json.dump(cfg.to_dict(), f, indent=1)
+  mgr = _checkpointer(run_dir)
+  logger = _Logger(run_dir)
+  bar = _Progress(progress)
+  phases = [p for p, n in ((1, cfg.phase1_steps), (2, cfg.phase2_steps)) if n > 0]
+  key = jax.random.PRNGKey(cfg.seed)
+  k_sg, k_aa, k_phase = jax.random.split(key, 3)
+
+  host = {"phase_index": 0, "calls": 0, "env_steps": 0, "history": [], "wall_s": 0.0, "compile_s": {},
+          "converged": False, "done": False}
+  ckpt_step, saved_host = _restore_host(mgr) if resume else (None, None)
+  if resume and saved_host is None:
+    log(f"[train] no checkpoint in {run_dir}; starting from scratch")
+  if saved_host is not None:
+    host.update(saved_host)
+
+  stop = {"flag": False}
+
+  def _on_signal(signum, _frame):
+    stop["flag"] = True
+    log(f"\n[train] signal {signum}: checkpointing after the current call, then stopping")
+
+  old_handlers = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+  calls_here = 0
+  summary_phase = {}
+  sg_state = aa_state = None
+  try:
+    while host["phase_index"] < len(phases) and not host["done"]:
+      number = phases[host["phase_index"]]
+      phase = it.make_phase(cfg, number)
+      if sg_state is None:
+        sg_state = phase.sg.init(k_sg, phase.env.observation_size if number == 1 else phase.env.env.observation_size)
+        aa_state = phase.aa.init(k_aa, attacker_lib.N_OBS)
+      t0 = time.time()
+      fresh = phase.init(jax.random.fold_in(k_phase, number), sg_state, aa_state)
+      if ckpt_step is not None and saved_host is not None:
+        carry = _restore_carry(mgr, ckpt_step, jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), fresh))
+        del fresh
+        ckpt_step = None
+        log(f"[train] resumed phase {number} at iteration {int(carry.iteration)} from {run_dir}")
+      else:
+        carry = fresh
+      total_calls = -(-phase.iterations // cfg.iters_per_call)
+      phase_total = total_calls * cfg.iters_per_call * cfg.steps_per_iter
+      last_ckpt = time.time()
+      while int(carry.iteration) < total_calls * cfg.iters_per_call:
+        tc = time.time()
+        carry, m = phase.run(carry)
+        m = jax.device_get(m)
+        dt = time.time() - tc
+        host["calls"] += 1
+        calls_here += 1
+        host["wall_s"] += dt
+        first = str(number) not in host["compile_s"]
+        if first:
+          host["compile_s"][str(number)] = dt
+        steps_call = cfg.iters_per_call * cfg.steps_per_iter
+        sps = steps_call / dt
+        it_end = int(carry.iteration)
+        for i in range(cfg.iters_per_call):
+          mi = {k: float(np.asarray(v)[i]) for k, v in m.items()}
+          d = derived(mi)
+          host["env_steps"] += cfg.steps_per_iter
+          rec = {"phase": number, "iteration": it_end - cfg.iters_per_call + i + 1, "env_steps": host["env_steps"],
+                 "sps": sps, "first_call": first, **d,
+                 **{k: v for k, v in mi.items() if k.startswith(("sg_", "aa_")) or k in ("turn", "episodes")}}
+          logger.log(rec)
+          if number == 2:
+            host["history"].append([d["return"], d["return_aa"]])
+            host["history"] = host["history"][-2 * cfg.converge_window:]
+        steps_phase = it_end * cfg.steps_per_iter
+        recent = [derived({k: float(np.asarray(v)[-1]) for k, v in m.items()})]
+        bar.show(number, steps_phase, phase_total, sps, recent[0]["svr"], recent[0]["rsr"], recent[0]["return"])
+        summary_phase[number] = recent[0]
+        if number == 2 and converged(host["history"], cfg.converge_window, cfg.converge_eps):
+          host["converged"] = True
+          log(f"\n[train] phase 2 converged at iteration {it_end} (|d return / d iter| < {cfg.converge_eps})")
+          break
+        interrupted = stop["flag"] or (stop_after_calls is not None and calls_here >= stop_after_calls)
+        if interrupted or time.time() - last_ckpt >= cfg.checkpoint_every_s:
+          _save(mgr, host["calls"], carry, host)
+          last_ckpt = time.time()
+        if interrupted:
+          log(f"\n[train] stopped after {host['calls']} calls; resume with: python train.py --resume {run_dir}")
+          return {"interrupted": True, "run_dir": run_dir, "calls": host["calls"]}
+      if bar.tty and progress:
+        print(file=sys.stderr)
+      sg_state, aa_state = carry.sg, carry.aa
+      host["phase_index"] += 1
+      _save(mgr, host["calls"], carry, host)
+    # ---- finished (or restored a finished run) ----
+    if sg_state is None:  # resumed after the last phase: restore the final carry
+      number = phases[-1]
+      phase = it.make_phase(cfg, number)
+      sg0 = phase.sg.init(k_sg, 24)
+      aa0 = phase.aa.init(k_aa, attacker_lib.N_OBS)
+      fresh = jax.eval_shape(lambda: phase.init(jax.random.fold_in(k_phase, number), sg0, aa0))
+      carry = _restore_carry(mgr, mgr.latest_step(), fresh)
+      sg_state, aa_state = carry.sg, carry.aa
+    host["done"] = True
+    summary = {"run_dir": os.path.abspath(run_dir), "config": cfg.to_dict(), "env_steps": host["env_steps"],
+               "train_wall_s": host["wall_s"], "compile_s": host["compile_s"], "converged": host["converged"],
+               "final_train_metrics": {str(k): v for k, v in summary_phase.items()},
+               "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
+               "date": time.strftime("%Y-%m-%d")}
+    if export:
+      summary["export"] = export_policy(cfg, run_dir, sg_state)
+    with open(os.path.join(run_dir, "summary.json"), "w") as f:
+      json.dump(summary, f, indent=1, default=float)
+    return summary
+  finally:
+    for s, h in old_handlers.items():
+      signal.signal(s, h)
+    logger.close()
+    mgr.close()
+
+
+def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
+  """Save the SpecGuard policy (msgpack + config) and its ONNX with normalisation folded in; returns parity/latency."""
+  from specguard_jax import export
+  policy = it.sg_policy(cfg)
+  params = jax.device_get(sg_state.params["policy"])
+  norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
+  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip)
+  res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
+                           clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant})
+  return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in res.items()}
+
+
+def default_sizes(backend: str) -> dict:
+  """Env count and step budgets sized to the backend (GPU: tens of thousands of envs; CPU: hundreds)."""
+  if backend == "gpu":
+    return dict(num_envs=16384, unroll_length=32, phase1_steps=150_000_000, phase2_steps=150_000_000,
+                iters_per_call=5)
+  return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4)
+
+
+def with_defaults(cfg: TrainConfig, **overrides) -> TrainConfig:
+  return dataclasses.replace(cfg, **overrides)

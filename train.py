@@ -1,0 +1,149 @@
+"""Train a SpecGuard recovery policy: phase 1 (compliance, no attacks) then phase 2 (adversarial, vs the attack agent).
+
+  python train.py                                  # default drone SpecGuard-RC, sized to the backend
+  python train.py --vehicle rover --variant pc --envs 8192 --steps 200000000 --out runs/rover_pc
+  python train.py --resume runs/drone_rc           # continue an interrupted run from its last checkpoint
+  python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
+  python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
+
+Writes runs/<name>/ (config.json, metrics.jsonl, tb/, checkpoints/, policy.onnx, policy.msgpack, summary.json) and
+prints where they are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+from specguard_jax.types import SENSOR_NAMES
+
+
+def _csv(s):
+  return tuple(x for x in s.split(",") if x)
+
+
+def parse_args(argv=None):
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+  ap.add_argument("--vehicle", choices=("drone", "rover"))
+  ap.add_argument("--variant", choices=("rc", "pc"), help="rc: reactive control (default); pc: proactive control")
+  ap.add_argument("--steps", type=int, help="total env steps (split evenly between phase 1 and phase 2)")
+  ap.add_argument("--phase1-steps", type=int)
+  ap.add_argument("--phase2-steps", type=int)
+  ap.add_argument("--envs", type=int, help="parallel envs (default: 16384 on a GPU, 256 on the CPU)")
+  ap.add_argument("--unroll", type=int, help="env steps per env per iteration")
+  ap.add_argument("--iters-per-call", type=int, help="training iterations per compiled call")
+  ap.add_argument("--seed", type=int)
+  ap.add_argument("--out", help="run directory (default runs/<vehicle>_<variant>_s<seed>_<time>)")
+  ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
+  ap.add_argument("--world", dest="worlds", type=_csv, help="comma-separated world presets to train in")
+  ap.add_argument("--reward", choices=("compliance", "binary"))
+  ap.add_argument("--action", choices=("gaussian", "discrete"), help="continuous velocity setpoint or the paper's 6")
+  ap.add_argument("--no-reconstruction", action="store_true", help="ablation: no state reconstruction in phase 2")
+  ap.add_argument("--detector", choices=("residual", "oracle"))
+  ap.add_argument("--attack-sensors", type=_csv, help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
+  ap.add_argument("--converge-eps", type=float, help="stop phase 2 when both average returns change less than this")
+  ap.add_argument("--config", help="JSON file of TrainConfig fields")
+  ap.add_argument("--sweep", nargs="+", metavar="KEY=V1,V2",
+                  help="train every combination of these config values (e.g. seed=0,1 sg.lr=1e-4,3e-4)")
+  ap.add_argument("--no-progress", action="store_true")
+  ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+  return ap.parse_args(argv)
+
+
+def build_config(a):
+  import jax
+
+  from specguard_jax.ppo import config as C
+  from specguard_jax.ppo.runner import default_sizes
+  cfg = C.TrainConfig(**default_sizes(jax.default_backend()))
+  if a.config:
+    cfg = C.load_config_file(a.config, cfg)
+  over = {}
+  simple = {"vehicle": a.vehicle, "variant": a.variant, "num_envs": a.envs, "unroll_length": a.unroll,
+            "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
+            "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
+            "converge_eps": a.converge_eps, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps}
+  over.update({k: v for k, v in simple.items() if v is not None})
+  if a.steps is not None:
+    over["phase1_steps"] = a.steps // 2
+    over["phase2_steps"] = a.steps - a.steps // 2
+  if a.no_reconstruction:
+    over["reconstruction"] = False
+  cfg = dataclasses.replace(cfg, **over)
+  if "num_envs" in over and cfg.num_envs < 1024 and jax.default_backend() == "gpu":
+    print(f"[train] note: {cfg.num_envs} envs leave most of the GPU idle", file=sys.stderr)
+  return cfg.validate()
+
+
+def _sweep_members(cfg, items):
+  import itertools
+
+  from specguard_jax.ppo import config as C
+  axes = []
+  for item in items:
+    if "=" not in item:
+      raise ValueError(f"bad --sweep item {item!r}; expected KEY=V1,V2 (e.g. seed=0,1)")
+    k, vals = item.split("=", 1)
+    axes.append([(k, json.loads(v) if v[:1] in "-0123456789[{\"tf" else v) for v in vals.split(",")])
+  members = []
+  for combo in itertools.product(*axes):
+    d = {}
+    for k, v in combo:
+      if "." in k:
+        agent, field = k.split(".", 1)
+        d.setdefault(agent, {})[field] = v
+      else:
+        d[k] = v
+    members.append((dict(combo), C.from_dict(d, cfg).validate()))
+  return members
+
+
+def main(argv=None):
+  a = parse_args(argv)
+  from specguard_jax.ppo import runner
+  try:
+    if a.resume:
+      cfg = runner.load_run_config(a.resume)
+      out = a.resume
+    else:
+      cfg = build_config(a)
+      out = a.out or os.path.join("runs", f"{cfg.vehicle}_{cfg.variant}_s{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
+    if a.sweep:
+      members = _sweep_members(cfg, a.sweep)
+    else:
+      members = None
+  except ValueError as e:
+    print(f"train.py: error: {e}", file=sys.stderr)
+    return 2
+  if members:
+    rows = []
+    for i, (point, mcfg) in enumerate(members):
+      name = "_".join(f"{k}{v}" for k, v in point.items()).replace("/", "-")
+      s = runner.train(mcfg, os.path.join(out, name), progress=not a.no_progress, export=not a.no_export)
+      fm = s["final_train_metrics"].get("2") or s["final_train_metrics"].get("1", {})
+      rows.append({**point, "svr": fm.get("svr"), "rsr": fm.get("rsr"), "return": fm.get("return"),
+                   "env_steps": s["env_steps"], "train_wall_s": s["train_wall_s"], "run_dir": s["run_dir"]})
+    with open(os.path.join(out, "sweep.json"), "w") as f:
+      json.dump(rows, f, indent=1)
+    keys = list(rows[0])
+    print(" | ".join(keys))
+    for r in rows:
+      print(" | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in keys))
+    print(f"[train] sweep of {len(rows)} runs: {os.path.abspath(out)}/sweep.json")
+    return 0
+  s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export)
+  if s.get("interrupted"):
+    return 130
+  print(f"[train] done: {s['env_steps']:,} env steps in {s['train_wall_s']:.0f} s of training calls")
+  print(f"[train] run directory: {s['run_dir']}")
+  for name in ("policy.onnx", "summary.json", "metrics.jsonl", "checkpoints", "tb"):
+    print(f"  {os.path.join(s['run_dir'], name)}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
