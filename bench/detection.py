@@ -9,6 +9,12 @@ Table columns: n missions; TPR = alarm raised while the attack is on (and none b
 alarm before the onset (the attack-free row: anywhere); delay = s from onset to the first alarm (median, p90);
 diag = diagnosis on the first alarm (after the diagnosis window) names the attacked sensor, among detected missions.
 Attack magnitudes are drawn from the paper's Table 3 ranges (specguard_jax.attacks.BIAS_RANGES), random direction.
+
+  JAX_PLATFORMS=cpu python bench/detection.py --stealthy 10         # designed stealthy ramps (attacks.stealthy)
+
+--stealthy S: per sensor, the fastest ramp `attacks.design_stealthy` finds to stay hidden S s from the calibrated
+detector (design missions), then its hidden time and that of a 4x faster ramp on held-out missions (those whose
+attack-free twin raised a false alarm left out; hidden times censored at the window S x (1 + margin) + 1 s).
 """
 
 from __future__ import annotations
@@ -106,6 +112,61 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
   return rows, cfg
 
 
+STEALTHY_BIAS = {"drone": {"gps": [30.0, 0.0, 0.0], "baro": [-8.0], "mag": [float(np.pi / 2)], "flow": [1.0, 0.0],
+                            "gyro": [0.0, 0.0, 0.5], "accel": [0.0, 0.0, -2.0]},
+                  "rover": {"gps": [30.0, 0.0, 0.0], "baro": [-8.0], "mag": [float(np.pi / 2)],
+                            "gyro": [0.0, 0.0, 0.5], "accel": [2.0, 0.0, 0.0]}}
+
+
+def stealthy_table(vehicle: str = "drone", hidden_s: float = 10.0, onset: float = 12.0, n_design: int = 8,
+                   n_held: int = 24, n_rates: int = 7, margin: float = 0.2, target_fpr: float = 0.05, seed: int = 0,
+                   verbose: bool = True):
+  """Design a stealthy ramp per sensor (STEALTHY_BIAS) against the detector calibrated on (n_rates + 1) x n_design
+  attack-free missions; measure it and a 4x faster ramp on n_held held-out missions. Returns (rows, cfg)."""
+  mc = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(max_duration_s=80.0, min_duration_s=50.0)
+  env = envs.make(vehicle, mission=mc)
+  batch = (n_rates + 1) * n_design
+  n_ticks = attacks.window_ticks(env, onset, hidden_s * (1 + margin) + 1.0)
+  t0 = time.time()
+  k_cal, k_held = jax.random.split(jax.random.PRNGKey(seed + 1))
+  base = det.DetectorConfig.drone() if vehicle == "drone" else det.DetectorConfig.rover()
+  r, f, _, _ = attacks.record_residuals(env, base, jax.random.split(k_cal, batch), free_attacks(batch), n_ticks, batch)
+  cfg = det.calibrate(base, r, f, target_fpr)
+  keys = jax.random.split(k_held, n_held)
+  hid, fa = attacks.hidden_times(cfg, *attacks.record_residuals(env, cfg, keys, free_attacks(n_held), n_ticks, batch),
+                                 0.0)
+  ok = ~fa
+  rows = []
+  for s, b in STEALTHY_BIAS[vehicle].items():
+    d = attacks.design_stealthy(env, cfg, s, b, hidden_s, onset, n_rates=n_rates, n_missions=n_design, margin=margin,
+                                seed=seed, batch=batch)
+    row = {"sensor": s, "bias": b, "rate": d.rate, "ramp_s": d.ramp_time, "feasible": d.feasible}
+    if d.feasible:
+      i = int(np.searchsorted(d.rates, d.rate))
+      fast = d.schedule.replace(ramp_time=d.schedule.ramp_time / 4.0)
+      sched = jax.tree.map(lambda a, c: jnp.stack([a] * n_held + [c] * n_held), d.schedule, fast)
+      h, _ = attacks.hidden_times(cfg, *attacks.record_residuals(env, cfg, jnp.concatenate([keys, keys]), sched,
+                                                                  n_ticks, batch), onset)
+      hd, hf = h[:n_held][ok], h[n_held:][ok]
+      row.update(design_min=float(d.hidden[i, ~d.dropped].min()), held_min=float(hd.min()),
+                 held_ok=float(np.mean(hd >= hidden_s)), fast_med=float(np.median(hf)), fast_max=float(hf.max()))
+    rows.append(row)
+  if verbose:
+    print(f"{vehicle}: detector calibrated on {batch} attack-free missions (FPR target {target_fpr}); onset "
+          f"{onset:.0f} s, hidden_s {hidden_s:.0f} s, margin {margin}, {n_design} design / {int(ok.sum())} held-out "
+          f"missions ({int(fa.sum())} with a false alarm left out); {time.time() - t0:.1f} s")
+    print(f"{'sensor':7s} {'bias':>18s} {'rate/s':>9s} {'ramp_s':>7s} {'design_min':>10s} {'held_min':>8s} "
+          f"{'held_ok':>7s} {'4x_med':>6s} {'4x_max':>6s}")
+    for w in rows:
+      if not w["feasible"]:
+        print(f"{w['sensor']:7s} {str(w['bias']):>18s}  infeasible: no rate in {attacks.RATE_RANGES[w['sensor']]}")
+        continue
+      print(f"{w['sensor']:7s} {str([round(x, 2) for x in w['bias']]):>18s} {w['rate']:9.4g} {w['ramp_s']:7.1f} "
+            f"{w['design_min']:10.2f} {w['held_min']:8.2f} {w['held_ok']:7.2f} {w['fast_med']:6.2f} "
+            f"{w['fast_max']:6.2f}")
+  return rows, cfg
+
+
 def format_table(rows) -> str:
   f = lambda x, d=2: "   -" if x != x else f"{x:.{d}f}"
   lines = [f"{'sensor':7s} {'profile':9s} {'n':>4s} {'TPR':>5s} {'FPR':>5s} {'delay_med':>9s} {'delay_p90':>9s} "
@@ -127,7 +188,13 @@ def main():
   ap.add_argument("--cal", type=int, default=None, help="attack-free calibration missions (default max(8, 2N))")
   ap.add_argument("--batch", type=int, default=64)
   ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--stealthy", type=float, default=None, metavar="S",
+                  help="design stealthy ramps hidden S s per sensor instead (onset: --onset, default 12 s here)")
   a = ap.parse_args()
+  if a.stealthy is not None:
+    stealthy_table(a.vehicle, a.stealthy, onset=12.0 if a.onset == ap.get_default("onset") else a.onset,
+                   target_fpr=a.fpr, seed=a.seed)
+    return
   run(a.vehicle, a.missions, a.seconds, a.onset, a.duration, a.fpr, a.cal, a.seed, a.batch)
 
 
