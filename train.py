@@ -46,6 +46,7 @@ def parse_args(argv=None):
   ap.add_argument("--detector", choices=("residual", "oracle"))
   ap.add_argument("--attack-sensors", type=_csv, help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
   ap.add_argument("--converge-eps", type=float, help="stop phase 2 when both average returns change less than this")
+  ap.add_argument("--eval-missions", type=int, help="held-out missions per setting evaluated after training")
   ap.add_argument("--config", help="JSON file of TrainConfig fields")
   ap.add_argument("--sweep", nargs="+", metavar="KEY=V1,V2",
                   help="train every combination of these config values (e.g. seed=0,1 sg.lr=1e-4,3e-4)")
@@ -66,7 +67,7 @@ def build_config(a):
   simple = {"vehicle": a.vehicle, "variant": a.variant, "num_envs": a.envs, "unroll_length": a.unroll,
             "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
-            "converge_eps": a.converge_eps, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps}
+            "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:
     over["phase1_steps"] = a.steps // 2

@@ -63,6 +63,7 @@ class EnvConfig:
   control back to the autopilot when the alarm clears).  detector: attack detector run every tick on the attacked
   readings and the EKF ('residual' or 'oracle'); its alarm/diagnosis are in info['alarm'] / info['diagnosis'].
   override_frame: 'world' (ENU) or 'body' (x/y rotated by the estimated yaw, as in the paper's appendix).
+  override_residual: the override is added to the navigator's mission-following setpoint instead of replacing it.
   domain_randomization: per-episode wind, gusts, thrust/drive gain, drag, friction, mass.
   clearance: obstacle/fence clearance from the mission path used by world generation (m).
   """
@@ -85,6 +86,7 @@ class EnvConfig:
   detector: str = "none"        # 'none' | 'residual' (CUSUM detector + diagnosis) | 'oracle' (true attack, delayed)
   detector_delay: float = 0.0   # oracle detection delay (s)
   detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
+  override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
   dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
 
@@ -335,7 +337,7 @@ class RAVEnv(Env):
     landed = self._vehicle_landed(sim)
     nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
-    vel_sp = jnp.where(use_override, override_vel, vel_nav)
+    vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
     data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)

@@ -41,7 +41,9 @@ class TrainConfig:
   phase 2 (False = the ablation).  detector: 'residual' (CUSUM, deployment-faithful) or 'oracle' (+ detector_delay).
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
   converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
-  iteration, averaged over the window of iterations).  completion_bonus: reward on mission completion in units of the
+  iteration, averaged over the window of iterations).  residual: SpecGuard's velocity setpoint is a correction added to the mission navigator's setpoint (computed on the
+  reconstructed state under attack); False = it replaces it (the paper's absolute moves, far slower to learn).
+  completion_bonus: reward on mission completion in units of the
   maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
   finishing the mission never looks worse than dawdling.
   """
@@ -52,7 +54,9 @@ class TrainConfig:
   action: str = "gaussian"
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
-  speeds: tuple = (8.0, 8.0, 2.0)   # velocity-setpoint scale per axis (m/s), yaw frame
+  speeds: tuple = (4.0, 4.0, 2.0)   # velocity-setpoint (correction) scale per axis (m/s), yaw frame
+  residual: bool = True             # the policy's setpoint is added to the navigator's (see docs/DESIGN.md)
+  init_log_std: float = -1.0        # initial log std of the Gaussian head
   num_envs: int = 256
   unroll_length: int = 32
   phase1_steps: int = 2_000_000
@@ -74,6 +78,7 @@ class TrainConfig:
   obs_clip: float = 10.0
   sg: PPOConfig = PPOConfig()
   aa: PPOConfig = PPOConfig(ent_coef=0.01)
+  eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
 

@@ -15,6 +15,7 @@ reached the vehicle (override active: cruise/loiter, and the alarm up for RC); i
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -47,7 +48,7 @@ class Carry:
 
 def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv)."""
-  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body")
+  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual)
   if phase == 1:
     return envs_lib.make(cfg.vehicle, control_mode="override", **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
@@ -59,7 +60,8 @@ def make_env(cfg: TrainConfig, phase: int):
 
 
 def sg_policy(cfg: TrainConfig) -> networks.Policy:
-  return networks.Policy(cfg.action, 6 if cfg.action == "discrete" else 3, tuple(cfg.hidden), cfg.activation)
+  return networks.Policy(cfg.action, 6 if cfg.action == "discrete" else 3, tuple(cfg.hidden), cfg.activation,
+                         init_log_std=cfg.init_log_std)
 
 
 def aa_policy(cfg: TrainConfig) -> networks.Policy:
@@ -95,7 +97,9 @@ class Phase:
   iterations: int
 
 
+@functools.lru_cache(maxsize=8)
 def make_phase(cfg: TrainConfig, phase: int) -> Phase:
+  """The phase's env and compiled functions (cached per config: a resumed run in the same process reuses them)."""
   env = make_env(cfg, phase)
   batched = AutoReset(VmapWrapper(env))
   sg, aa = make_agents(cfg)
@@ -207,3 +211,34 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
 
   return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=jax.jit(init),
                run=jax.jit(run, donate_argnums=0), iterations=_iterations(cfg, phase))
+
+
+@dataclasses.dataclass(frozen=True)
+class DeterministicPolicy:
+  """Hashable deterministic SpecGuard controller for evaluation: params {'policy', 'mean', 'std'} and obs [B, n] ->
+  velocity setpoint [B, 3] (m/s, yaw frame): mode of the action head on clipped normalised observations."""
+  policy: networks.Policy
+  kind: str
+  speeds: tuple
+  clip: float
+
+  def __call__(self, p, obs):
+    x = jnp.clip((obs - p["mean"]) / p["std"], -self.clip, self.clip)
+    return networks.to_setpoint(self.kind, self.policy.mode(p["policy"], x), self.speeds)
+
+
+def eval_env(cfg: TrainConfig):
+  """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator)."""
+  return envs_lib.make(cfg.vehicle, worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body",
+                       override_residual=cfg.residual,
+                       control_mode="reactive" if cfg.variant == "rc" else "override", detector=cfg.detector,
+                       detector_delay=cfg.detector_delay, reconstruction=cfg.reconstruction)
+
+
+def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: int = 10_000) -> dict:
+  """Held-out quality of the trained SpecGuard policy (specguard_jax.evaluation) in the run's deployment env."""
+  from specguard_jax import evaluation
+  env = eval_env(cfg)
+  fn = DeterministicPolicy(sg_policy(cfg), cfg.action, tuple(cfg.speeds), cfg.obs_clip)
+  p = {"policy": sg_state.params["policy"], "mean": sg_state.normalizer.mean, "std": sg_state.normalizer.std}
+  return evaluation.evaluate(env, fn, p, missions=missions, seed=seed)

@@ -114,9 +114,21 @@ def _checkpointer(run_dir):
   return ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True))
 
 
+def _pack(carry) -> dict:
+  """Carry leaves by flat index (Orbax cannot store zero-size arrays such as an empty MJX `act`: they are left out
+  and rebuilt from the abstract carry on restore)."""
+  return {str(i): x for i, x in enumerate(jax.tree.leaves(carry)) if x.size}
+
+
+def _unpack(abstract, packed: dict):
+  leaves, tree = jax.tree.flatten(abstract)
+  out = [packed[str(i)] if str(i) in packed else jnp.zeros(a.shape, a.dtype) for i, a in enumerate(leaves)]
+  return jax.tree.unflatten(tree, out)
+
+
 def _save(mgr, step: int, carry, host: dict):
   import orbax.checkpoint as ocp
-  mgr.save(step, args=ocp.args.Composite(carry=ocp.args.StandardSave(carry), host=ocp.args.JsonSave(host)),
+  mgr.save(step, args=ocp.args.Composite(carry=ocp.args.StandardSave(_pack(carry)), host=ocp.args.JsonSave(host)),
            force=True)
   mgr.wait_until_finished()
 
@@ -131,7 +143,8 @@ def _restore_host(mgr):
 
 def _restore_carry(mgr, step, abstract):
   import orbax.checkpoint as ocp
-  return mgr.restore(step, args=ocp.args.Composite(carry=ocp.args.StandardRestore(abstract)))["carry"]
+  packed = mgr.restore(step, args=ocp.args.Composite(carry=ocp.args.StandardRestore(_pack(abstract))))["carry"]
+  return _unpack(abstract, packed)
 
 
 def load_run_config(run_dir: str) -> TrainConfig:
@@ -191,7 +204,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
       t0 = time.time()
       fresh = phase.init(jax.random.fold_in(k_phase, number), sg_state, aa_state)
       if ckpt_step is not None and saved_host is not None:
-        carry = _restore_carry(mgr, ckpt_step, jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), fresh))
+        carry = _restore_carry(mgr, ckpt_step, fresh)
         del fresh
         ckpt_step = None
         log(f"[train] resumed phase {number} at iteration {int(carry.iteration)} from {run_dir}")
@@ -262,6 +275,12 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
                "date": time.strftime("%Y-%m-%d")}
     if export:
       summary["export"] = export_policy(cfg, run_dir, sg_state)
+    if cfg.eval_missions > 0:
+      te = time.time()
+      summary["heldout"] = it.heldout(cfg, sg_state, cfg.eval_missions)
+      summary["heldout_wall_s"] = time.time() - te
+      log(f"[train] held-out ({cfg.eval_missions} missions per setting): " + ", ".join(
+          f"{k} SVR {v['svr']:.3f} RSR {v['rsr']:.3f}" for k, v in summary["heldout"].items() if k[0] != "_"))
     with open(os.path.join(run_dir, "summary.json"), "w") as f:
       json.dump(summary, f, indent=1, default=float)
     return summary
@@ -287,9 +306,10 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
 def default_sizes(backend: str) -> dict:
   """Env count and step budgets sized to the backend (GPU: tens of thousands of envs; CPU: hundreds)."""
   if backend == "gpu":
-    return dict(num_envs=16384, unroll_length=32, phase1_steps=150_000_000, phase2_steps=150_000_000,
-                iters_per_call=5)
-  return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4)
+    return dict(num_envs=16384, unroll_length=32, phase1_steps=100_000_000, phase2_steps=200_000_000,
+                iters_per_call=5, eval_missions=1000)
+  return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
+              eval_missions=16)
 
 
 def with_defaults(cfg: TrainConfig, **overrides) -> TrainConfig:
