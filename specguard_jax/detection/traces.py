@@ -42,11 +42,12 @@ def _actuation(env, sim):
 
 
 @functools.partial(jax.jit, static_argnames=("env", "n_ticks"))
-def record_ticks(env, keys, attacks, n_ticks: int) -> TickTrace:
-  """keys [B] PRNG keys, attacks: batched AttackSchedule [B]; returns a TickTrace with leaves [B, n_ticks, ...]."""
+def record_ticks(env, keys, attacks, n_ticks: int, world_ids=None) -> TickTrace:
+  """keys [B] PRNG keys, attacks: batched AttackSchedule [B], world_ids: optional [B] int32 world preset ids
+  (envs.worlds.PRESET_NAMES; None: the env's config); returns a TickTrace with leaves [B, n_ticks, ...]."""
 
-  def one(key, attack):
-    state = env.reset_in_world(key, None, None, attack)
+  def one(key, attack, world_id):
+    state = env.reset_in_world(key, world_id, None, attack)
     mission, world = state.info["mission"], state.info["world"]
     zero = jnp.zeros(3)
     no_override = jnp.zeros((), bool)
@@ -68,7 +69,9 @@ def record_ticks(env, keys, attacks, n_ticks: int) -> TickTrace:
     _, tr = jax.lax.scan(body, (state.pipeline_state, state.info["sim"], jnp.ones((), bool)), ks)
     return tr
 
-  return jax.vmap(one)(keys, attacks)
+  if world_ids is None:
+    return jax.vmap(lambda k, a: one(k, a, None))(keys, attacks)
+  return jax.vmap(one)(keys, attacks, jnp.asarray(world_ids, jnp.int32))
 
 
 def _slim_ekf(ekf):

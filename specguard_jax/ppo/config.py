@@ -38,7 +38,8 @@ class TrainConfig:
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
   (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
   better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).  reconstruction: state reconstruction in the loop in
-  phase 2 (False = the ablation).  detector: 'residual' (CUSUM, deployment-faithful) or 'oracle' (+ detector_delay).
+  phase 2 (False = the ablation).  detector: the training detector, 'oracle' (true attack window after detector_delay
+  s, with the true diagnosis: the issue's training detector) or 'residual' (CUSUM); eval_detector: the held-out one.
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
   converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
   iteration, averaged over the window of iterations).  residual: SpecGuard's velocity setpoint is a correction added to the mission navigator's setpoint (computed on the
@@ -64,7 +65,8 @@ class TrainConfig:
   iters_per_call: int = 4
   seed: int = 0
   reconstruction: bool = True
-  detector: str = "residual"
+  detector: str = "oracle"
+  eval_detector: str = "residual"   # the detector of the held-out evaluation (deployment)
   detector_delay: float = 0.5
   attack_sensors: tuple = SENSOR_NAMES
   attack_max_duration_s: float = 40.0
@@ -95,7 +97,7 @@ class TrainConfig:
       raise ValueError(f"unknown reward {self.reward!r}; choose compliance or binary")
     if self.action not in ("gaussian", "discrete"):
       raise ValueError(f"unknown action head {self.action!r}; choose gaussian or discrete")
-    if self.detector not in ("residual", "oracle"):
+    if self.detector not in ("residual", "oracle") or self.eval_detector not in ("residual", "oracle"):
       raise ValueError(f"unknown detector {self.detector!r}; choose residual or oracle")
     bad = [s for s in self.attack_sensors if s not in SENSOR_NAMES]
     if bad or not self.attack_sensors:

@@ -231,7 +231,7 @@ def eval_env(cfg: TrainConfig):
   """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator)."""
   return envs_lib.make(cfg.vehicle, worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body",
                        override_residual=cfg.residual,
-                       control_mode="reactive" if cfg.variant == "rc" else "override", detector=cfg.detector,
+                       control_mode="reactive" if cfg.variant == "rc" else "override", detector=cfg.eval_detector,
                        detector_delay=cfg.detector_delay, reconstruction=cfg.reconstruction)
 
 

@@ -298,15 +298,17 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
   export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip)
-  res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
-                           clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant})
+  # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
+  with jax.default_matmul_precision("float32"):
+    res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
+                             clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant})
   return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in res.items()}
 
 
 def default_sizes(backend: str) -> dict:
   """Env count and step budgets sized to the backend (GPU: tens of thousands of envs; CPU: hundreds)."""
   if backend == "gpu":
-    return dict(num_envs=16384, unroll_length=32, phase1_steps=100_000_000, phase2_steps=200_000_000,
+    return dict(num_envs=16384, unroll_length=32, phase1_steps=30_000_000, phase2_steps=60_000_000,
                 iters_per_call=5, eval_missions=1000)
   return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
               eval_missions=16)

@@ -1,0 +1,192 @@
+"""The shipped detector presets: calibrate the residual CUSUM detector on attack-free missions, save/load as JSON.
+
+`DetectorConfig.drone()` / `.rover()` (what the env uses when EnvConfig.detector_config is None) return the
+vehicle model with the calibrated `scale`, `h`, `used` and `k` read from assets/detector_<vehicle>.json;
+`DetectorConfig.drone(calibrated=False)` gives the uncalibrated defaults (the starting point of `calibrate`).
+Calibration costs a compile and some simulation, so the thresholds are shipped as constants and regenerated with
+
+  python -m specguard_jax.detection.preset_file --vehicle drone --missions 1024
+  python -m specguard_jax.detection.preset_file --vehicle rover --missions 1024
+
+which flies `missions` attack-free missions (MissionConfig of the vehicle, nominal length `--mission-s`, flown whole:
+`--seconds` covers the longest), worlds CAL_WORLDS round robin, domain randomisation on, through the env's own ticks
+(detection.traces.record_ticks), and runs `detection.calibrate` for `--target-fpr` false alarms per mission (seeded;
+the file records the seed, missions, worlds, mission lengths, target and in-sample statistics).
+Custom presets: `DetectorConfig.drone(**load_preset(path, "drone"))`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import time
+
+import numpy as np
+
+from specguard_jax.detection import detector as det
+
+ASSETS = det._ASSETS
+# The trainer's worlds (specguard_jax.ppo.config) first, then the other presets: the preset holds in all of them.
+CAL_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain", "suburban_streets",
+              "urban_city_areas", "urban_green_areas", "urban_high_rise", "manufacturing_plant", "open_beach")
+FIELDS = ("scale", "h", "used", "k")
+
+
+def default_path(vehicle: str) -> str:
+  return os.path.join(ASSETS, f"detector_{vehicle}.json")
+
+
+def save_preset(cfg: det.DetectorConfig, path: str, meta: dict | None = None) -> None:
+  out = {"vehicle": cfg.vehicle, "channels": list(det.CHANNELS), "scale": list(cfg.scale), "h": list(cfg.h),
+         "used": list(cfg.used), "k": float(cfg.k), "meta": meta or {}}
+  with open(path, "w") as f:
+    json.dump(out, f, indent=1)
+
+
+@functools.lru_cache(maxsize=16)
+def _load(path: str, mtime_ns: int, vehicle: str | None) -> tuple:
+  try:
+    with open(path) as f:
+      d = json.load(f)
+    if not isinstance(d, dict):
+      raise TypeError(f"top level is {type(d).__name__}, expected an object")
+    out = {k: tuple(float(x) for x in d[k]) for k in ("scale", "h", "used")}
+    out["k"] = float(d["k"])
+    channels, file_vehicle = list(d["channels"]), d["vehicle"]
+  except (OSError, KeyError, TypeError, ValueError) as e:
+    raise ValueError(f"cannot load detector preset {path}: {type(e).__name__}: {e}") from None
+  if vehicle is not None and file_vehicle != vehicle:
+    raise ValueError(f"detector preset {path} is for vehicle {file_vehicle!r}, expected {vehicle!r}")
+  if channels != list(det.CHANNELS):
+    raise ValueError(f"detector preset {path} has channels {channels}, expected {list(det.CHANNELS)}")
+  bad = [k for k in ("scale", "h", "used") if len(out[k]) != det.N_CHANNELS]
+  bad += [k for k in ("scale", "h") if k not in bad and not all(math.isfinite(x) and x > 0 for x in out[k])]
+  bad += ["used"] if "used" not in bad and not set(out["used"]) <= {0.0, 1.0} else []
+  bad += ["k"] if not (math.isfinite(out["k"]) and out["k"] > 0) else []
+  if bad:
+    raise ValueError(f"detector preset {path}: bad {', '.join(bad)} (need {det.N_CHANNELS} finite positive scale/h, "
+                     "used in {0, 1}, k > 0)")
+  return tuple(out.items())
+
+
+def load_preset(path: str, vehicle: str | None = None) -> dict:
+  """The calibrated DetectorConfig fields {scale, h, used, k} from a JSON file written by save_preset (checked
+  against `vehicle` if given and against CHANNELS); one-line ValueError if missing or malformed."""
+  try:
+    mtime = os.stat(path).st_mtime_ns
+  except OSError as e:
+    raise ValueError(f"cannot load detector preset {path}: {type(e).__name__}: {e}") from None
+  return dict(_load(os.path.abspath(path), mtime, vehicle))
+
+
+def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, batch: int = 64):
+  """Fly len(keys) attack-free missions of `env` in worlds `world_ids` [N] for n_ticks ticks, in chunks of `batch`
+  (the last padded: one compile). Returns numpy (|r| [N, T, C] float32, fresh [N, T, C] bool & valid, end [N] s:
+  how long each mission stayed valid)."""
+  import jax  # noqa: PLC0415
+  import jax.numpy as jnp  # noqa: PLC0415
+
+  from specguard_jax import attacks  # noqa: PLC0415
+  from specguard_jax.detection import traces  # noqa: PLC0415
+  n = int(keys.shape[0])
+  free = jax.tree.map(lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.asarray(x).dtype), (batch,) + jnp.shape(x)),
+                      attacks.no_attack())
+  world_ids = np.asarray(world_ids, np.int32)
+  r_all = np.zeros((n, n_ticks, det.N_CHANNELS), np.float32)
+  f_all = np.zeros((n, n_ticks, det.N_CHANNELS), bool)
+  end = np.zeros((n,), np.float32)
+  for i in range(0, n, batch):
+    idx = np.minimum(np.arange(i, i + batch), n - 1)
+    tr = traces.record_ticks(env, keys[idx], free, n_ticks, jnp.asarray(world_ids[idx]))
+    r, fresh = traces.residual_trace(base, tr, env.config.tick_dt)
+    m = min(batch, n - i)
+    r, fresh, valid = jax.device_get((r[:m], fresh[:m], tr.valid[:m]))
+    r_all[i:i + m], f_all[i:i + m] = r, fresh
+    end[i:i + m] = valid.sum(-1) * env.config.tick_dt
+  return r_all, f_all, end
+
+
+def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0, mission_s=(60.0, 120.0),
+                      target_fpr: float = 0.01, seed: int = 0, worlds=CAL_WORLDS, batch: int = 64,
+                      verbose: bool = True):
+  """Record `missions` attack-free missions (worlds round robin) and calibrate. Returns (DetectorConfig, meta)."""
+  import jax  # noqa: PLC0415
+  import jax.numpy as jnp  # noqa: PLC0415
+
+  import envs  # noqa: PLC0415
+  from envs import worlds as worlds_lib  # noqa: PLC0415
+  from envs.missions import MissionConfig  # noqa: PLC0415
+  bad = [w for w in worlds if w not in worlds_lib.PRESETS]
+  if bad or not worlds:
+    raise ValueError(f"unknown or no world(s) {bad}; choose from {', '.join(worlds_lib.PRESETS)}")
+  t0 = time.time()
+  mcfg = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(
+      min_duration_s=float(mission_s[0]), max_duration_s=float(mission_s[1]))
+  base = (det.DetectorConfig.drone if vehicle == "drone" else det.DetectorConfig.rover)(calibrated=False)
+  # detector_config given: the env does not read the (possibly missing or stale) preset being regenerated.
+  env = envs.make(vehicle, mission=mcfg, worlds=tuple(worlds), detector_config=base)
+  ids = [worlds_lib.PRESET_NAMES.index(worlds[i % len(worlds)]) for i in range(missions)]
+  n_ticks = int(round(seconds / env.config.tick_dt))
+  r, fresh, end = record_free(env, base, jax.random.split(jax.random.PRNGKey(seed), missions), ids, n_ticks, batch)
+  t_rec = time.time() - t0
+  cfg = det.calibrate(base, r, fresh, target_fpr)
+  # In-sample statistics: per-mission max of the uncapped CUSUM S (k = 1), relative to the calibrated h.
+  used = np.asarray(cfg.used) > 0
+  q = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
+  _, h_raw, max_s, n_fresh = jax.device_get(det._calibration_stats(jnp.asarray(r), jnp.asarray(fresh),
+                                                                   base.k_quantile, q))
+  score = np.asarray(max_s) / np.asarray(cfg.h)
+  mission_score = np.max(np.where(used, score, 0.0), axis=-1)
+  per_world = {w: float(np.max(mission_score[np.asarray(ids) == worlds_lib.PRESET_NAMES.index(w)], initial=0.0))
+               for w in worlds}
+  meta = {"vehicle": vehicle, "missions": missions, "seconds": seconds, "mission_s": list(mission_s),
+          "seed": seed, "worlds": list(worlds), "target_fpr_per_mission": target_fpr,
+          "k_quantile": base.k_quantile, "h_margin": base.h_margin, "h_min": base.h_min,
+          "h_quantile": q, "h_quantile_is_sample_max": bool(missions < 1.0 / max(1e-12, 1.0 - q)),
+          "mission_end_s": [float(np.min(end)), float(np.median(end)), float(np.max(end))],
+          "whole_missions": float(np.mean(end < seconds - 1e-3)),
+          "n_fresh": [int(x) for x in n_fresh], "h_raw": [float(x) for x in h_raw],
+          "in_sample_false_alarms": float(np.mean(mission_score > 1.0)),
+          "in_sample_max_score": float(np.max(mission_score)),
+          "in_sample_max_score_per_world": per_world,
+          "calibration_s": round(time.time() - t0, 1)}
+  if verbose:
+    print(f"{vehicle}: {missions} attack-free missions ({mission_s[0]:.0f}-{mission_s[1]:.0f} s nominal, ended "
+          f"{meta['mission_end_s'][0]:.0f}-{meta['mission_end_s'][2]:.0f} s, {100 * meta['whole_missions']:.0f}% "
+          f"flown whole in {seconds:.0f} s) recorded in {t_rec:.1f} s; calibrated in {meta['calibration_s']:.1f} s")
+  return cfg, meta
+
+
+def main(argv=None):
+  ap = argparse.ArgumentParser(description="calibrate and save the vehicle's residual-detector preset")
+  ap.add_argument("--vehicle", choices=("drone", "rover"), default="drone")
+  ap.add_argument("--missions", type=int, default=1024, help="attack-free calibration missions")
+  ap.add_argument("--seconds", type=float, default=135.0, help="recorded length (s): covers the longest mission")
+  ap.add_argument("--mission-s", type=float, nargs=2, default=(60.0, 120.0), metavar=("MIN", "MAX"),
+                  help="nominal mission length range (s), MissionConfig min/max_duration_s")
+  ap.add_argument("--target-fpr", type=float, default=0.01, help="false alarms per mission")
+  ap.add_argument("--worlds", default=",".join(CAL_WORLDS), help="comma-separated world presets (round robin)")
+  ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--batch", type=int, default=64)
+  ap.add_argument("--out", default="", help="default: assets/detector_<vehicle>.json")
+  a = ap.parse_args(argv)
+  worlds = tuple(w for w in a.worlds.split(",") if w)
+  try:
+    cfg, meta = calibrate_vehicle(a.vehicle, a.missions, a.seconds, tuple(a.mission_s), a.target_fpr, a.seed,
+                                  worlds, a.batch)
+  except ValueError as e:
+    ap.error(str(e))
+  out = a.out or default_path(a.vehicle)
+  save_preset(cfg, out, meta)
+  print(f"wrote {out}: in-sample false alarms {meta['in_sample_false_alarms']:.3f}, max score "
+        f"{meta['in_sample_max_score']:.2f}")
+  for c, u, s, h in zip(det.CHANNELS, cfg.used, cfg.scale, cfg.h):
+    if u:
+      print(f"  {c:10s} scale {s:9.4g}  h {h:8.2f}")
+
+
+if __name__ == "__main__":
+  main()
