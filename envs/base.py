@@ -138,8 +138,8 @@ class RAVEnv(Env):
     self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
     sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
     self.dt = config.tick_dt * config.ticks_per_step
-    self.det_cfg = config.detector_config or (detection_lib.DetectorConfig.drone() if self.vehicle == "drone"
-                                              else detection_lib.DetectorConfig.rover())
+    self.det_cfg = None if config.detector == "none" else config.detector_config or (
+        detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
