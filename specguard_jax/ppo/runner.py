@@ -126,8 +126,10 @@ def _unpack(abstract, packed: dict):
   return jax.tree.unflatten(tree, out)
 
 
-def _save(mgr, step: int, carry, host: dict):
+def _save(mgr, carry, host: dict):
   import orbax.checkpoint as ocp
+  host["saves"] = host.get("saves", 0) + 1
+  step = host["saves"]
   mgr.save(step, args=ocp.args.Composite(carry=ocp.args.StandardSave(_pack(carry)), host=ocp.args.JsonSave(host)),
            force=True)
   mgr.wait_until_finished()
@@ -248,7 +250,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
           break
         interrupted = stop["flag"] or (stop_after_calls is not None and calls_here >= stop_after_calls)
         if interrupted or time.time() - last_ckpt >= cfg.checkpoint_every_s:
-          _save(mgr, host["calls"], carry, host)
+          _save(mgr, carry, host)
           last_ckpt = time.time()
         if interrupted:
           log(f"\n[train] stopped after {host['calls']} calls; resume with: python train.py --resume {run_dir}")
@@ -257,7 +259,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         print(file=sys.stderr)
       sg_state, aa_state = carry.sg, carry.aa
       host["phase_index"] += 1
-      _save(mgr, host["calls"], carry, host)
+      _save(mgr, carry, host)
     # ---- finished (or restored a finished run) ----
     if sg_state is None:  # resumed after the last phase: restore the final carry
       number = phases[-1]
