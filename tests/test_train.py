@@ -1,0 +1,147 @@
+"""Trainer on the CPU: PPO pieces (GAE, loss, NaN guard), no recompiles between calls, a tiny phase-1 run with an
+interrupted + resumed twin that ends bit-identical, the CLI's one-line errors, and a tiny train -> export smoke
+(phase 1 + adversarial phase 2 + ONNX parity) asserting real outcomes."""
+
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import train as train_cli
+from specguard_jax import export
+from specguard_jax.ppo import attacker, config, iteration, losses, runner
+
+TINY_PPO = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
+
+
+def tiny(**kw):
+  base = dict(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=256, phase2_steps=0, hidden=(32, 32),
+              worlds=("suburban_residential",), sg=TINY_PPO, aa=TINY_PPO, checkpoint_every_s=0.0, seed=3)
+  base.update(kw)
+  return config.TrainConfig(**base).validate()
+
+
+def test_gae_bootstraps_truncation_not_termination():
+  r = jnp.array([[1.0], [1.0], [1.0]])
+  v = jnp.array([[0.5], [0.5], [0.5]])
+  nv = jnp.array([[0.5], [10.0], [0.5]])
+  done = jnp.array([[0.0], [1.0], [0.0]])
+  for term, expect_boot in ((0.0, True), (1.0, False)):
+    adv, target = losses.gae(r, v, nv, done * term, done, 0.9, 1.0)
+    delta1 = 1.0 + (0.9 * 10.0 if expect_boot else 0.0) - 0.5
+    np.testing.assert_allclose(adv[1, 0], delta1, rtol=1e-6)          # cut at the episode end
+    np.testing.assert_allclose(adv[2, 0], 1.0 + 0.9 * 0.5 - 0.5, rtol=1e-6)
+    np.testing.assert_allclose(target, adv + v, rtol=1e-6)
+
+
+def test_nan_gradients_never_reach_params():
+  cfg = tiny()
+  sg, _ = iteration.make_agents(cfg)
+  st = sg.init(jax.random.PRNGKey(0), 24)
+  n = 32
+  batch = {"obs": jnp.ones((4, 8, 24)), "action": jnp.zeros((4, 8, 3)), "logp": jnp.zeros((4, 8)),
+           "value": jnp.zeros((4, 8)), "adv": jnp.full((4, 8), jnp.nan), "target": jnp.zeros((4, 8)),
+           "mask": jnp.ones((4, 8))}
+  new, aux = jax.jit(lambda s, b, k: losses.update(sg, s, b, k))(st, batch, jax.random.PRNGKey(1))
+  assert int(aux["nan_skips"]) == cfg.sg.update_epochs * cfg.sg.num_minibatches
+  for a, b in zip(jax.tree.leaves(new.params), jax.tree.leaves(st.params)):
+    np.testing.assert_array_equal(a, b)
+  assert n == 32
+
+
+@pytest.mark.parametrize("phase", [1, 2])
+def test_carry_types_are_stable_so_calls_never_recompile(phase):
+  """The carry a call returns has exactly the input's shapes/dtypes/weak types (else each call would recompile)."""
+  cfg = tiny(phase2_steps=256)
+  ph = iteration.make_phase(cfg, phase)
+  k = jax.random.PRNGKey(0)
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  out = jax.eval_shape(lambda c: ph.run(c)[0], c)
+  a, b = jax.tree.leaves(c), jax.tree.leaves(out)
+  assert jax.tree.structure(c) == jax.tree.structure(out)
+  bad = [(x, y) for x, y in zip(a, b) if (x.shape, x.dtype, x.weak_type) != (y.shape, y.dtype, y.weak_type)]
+  assert not bad, bad[:3]
+
+
+def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
+  with pytest.raises(ValueError, match="unknown variant"):
+    tiny(variant="xx")
+  with pytest.raises(ValueError, match="divisible"):
+    tiny(num_envs=5, unroll_length=3)
+  with pytest.raises(ValueError, match="unknown config key"):
+    config.from_dict({"bogus": 1})
+  bad = tmp_path / "c.json"
+  bad.write_text("{not json")
+  assert train_cli.main(["--config", str(bad), "--out", str(tmp_path / "r")]) == 2
+  err = capsys.readouterr().err.strip().splitlines()
+  assert len(err) == 1 and "cannot read config file" in err[0]
+  assert train_cli.main(["--resume", str(tmp_path / "nothing")]) == 2
+  assert "not a run directory" in capsys.readouterr().err
+
+
+TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+  """One uninterrupted two-phase run (with held-out eval + export) and a twin stopped inside phase 2 and resumed;
+  both reuse the same compiled phases (make_phase is cached per config)."""
+  root = tmp_path_factory.mktemp("train")
+  cfg = tiny(eval_missions=1, alternate_iters=2, **TWO_PHASE)
+  full = runner.train(cfg, str(root / "full"), progress=False)
+  part = runner.train(cfg, str(root / "part"), progress=False, export=False, stop_after_calls=3)
+  resumed = runner.train(cfg, str(root / "part"), resume=True, progress=False)
+  return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed)
+
+
+def _final_sg(cfg, run_dir):
+  mgr = runner._checkpointer(str(run_dir))
+  ph = iteration.make_phase(cfg, 2)
+  k = jax.random.PRNGKey(0)
+  abstract = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  carry = runner._restore_carry(mgr, mgr.latest_step(), abstract)
+  mgr.close()
+  return carry
+
+
+def test_interrupted_run_resumes_bit_identical(runs):
+  assert runs["part"]["interrupted"] and runs["part"]["calls"] == 3
+  assert runs["resumed"]["env_steps"] == runs["full"]["env_steps"] == 4 * 2 * 64
+  full = _final_sg(runs["cfg"], runs["root"] / "full")
+  part = _final_sg(runs["cfg"], runs["root"] / "part")
+  for name in ("sg", "aa", "rng"):
+    for a, b in zip(jax.tree.leaves(getattr(full, name)), jax.tree.leaves(getattr(part, name))):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  lines = [json.loads(x) for x in open(runs["root"] / "part" / "metrics.jsonl")]
+  assert [(r["phase"], r["iteration"]) for r in lines] == [(1, 1), (1, 2), (1, 3), (1, 4), (2, 1), (2, 2), (2, 3),
+                                                            (2, 4)]
+  f1 = export.load_jax_policy(str(runs["root"] / "full"))
+  f2 = export.load_jax_policy(str(runs["root"] / "part"))
+  x = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
+  np.testing.assert_array_equal(np.asarray(f1(x)["setpoint"]), np.asarray(f2(x)["setpoint"]))
+
+
+def test_tiny_train_evaluate_export_smoke(runs):
+  run = runs["root"] / "full"
+  s = runs["full"]
+  for f in ("config.json", "metrics.jsonl", "policy.onnx", "policy.msgpack", "summary.json"):
+    assert (run / f).exists(), f
+  assert any(n.startswith("events") for n in os.listdir(run / "tb"))
+  lines = [json.loads(x) for x in open(run / "metrics.jsonl")]
+  assert {r["phase"] for r in lines} == {1, 2}
+  assert all(np.isfinite(r["sg_loss"]) for r in lines)
+  assert any(r["aa_loss"] != 0 for r in lines if r["phase"] == 2)   # the attack agent trained in its turns
+  assert any(r["sg_loss"] != 0 for r in lines if r["phase"] == 2)   # and SpecGuard in its turns
+  assert s["export"]["max_abs_diff"] <= 1e-5 and s["export"]["opset"] <= 17
+  h = s["heldout"]
+  assert h["attack_free"]["missions"] == 1 and h["gps/overt"]["attacked"] == 1.0
+  for k, v in h.items():
+    if k[0] != "_":
+      assert 0.0 <= v["svr"] <= 1.0 and v["unfinished"] == 0.0, (k, v)
+  fn = export.load_jax_policy(str(run))
+  out = fn(np.zeros((2, 24), np.float32))
+  assert np.all(np.isfinite(np.asarray(out["setpoint"])))
