@@ -41,7 +41,7 @@ def run():
   tr = traces.record_ticks(env, jax.random.split(jax.random.PRNGKey(42), len(cells)), atk, N_TICKS)
   cal = jax.tree.map(lambda x: x[:N_CAL], tr)
   rest = jax.tree.map(lambda x: x[N_CAL:], tr)
-  base = detection.DetectorConfig.drone()
+  base = detection.DetectorConfig.drone(calibrated=False)
   r, f = traces.residual_trace(base, cal, DT)
   cfg = detection.calibrate(base, r, f, TARGET_FPR)
   out = jax.device_get(traces.run_detector(cfg, rest, DT))

@@ -13,11 +13,23 @@ which flies `missions` attack-free missions (MissionConfig of the vehicle, nomin
 (detection.traces.record_ticks), and runs `detection.calibrate` for `--target-fpr` false alarms per mission (seeded;
 the file records the seed, missions, worlds, mission lengths, target and in-sample statistics).
 Custom presets: `DetectorConfig.drone(**load_preset(path, "drone"))`.
+
+Shipped (CPU, ~4.5 min per vehicle): 1024 missions of 60-120 s nominal flown whole (135 s recorded), all 10 worlds,
+target 0.01 false alarms per mission, calibrate's defaults (scale = 0.999 quantile of |r|, h = 3 x the per-mission
+CUSUM maximum at the 1 - 0.01 / n_channels quantile, here the sample maximum). Measured in the env
+(detector='residual', detector_config=None, envs.rollout.fly_batch, held-out seeds, trainer worlds): missions with
+any false alarm 0/256 (60-120 s nominal, flown 62-132 s drone / 50-124 s rover) and 0/128 (60-300 s nominal) for
+both vehicles, vs 59 % (drone) / 61 % (rover) of 64 such missions with the uncalibrated defaults. Overt GPS spoofs
+(5-37 m) are flagged within 0.1-0.4 s and blamed on the GPS. The IMU-model thresholds are high (drone gyro x/y h ~200,
+accel z ~140: heavy-tailed residuals in manoeuvres), so a 3 m/s^2 accel-z bias is flagged (0.9 s) through the GPS
+channels first and blamed on the GPS; a smaller --h-margin trades that against margin (at 1.0 the 256 held-out
+missions still had no false alarm).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import math
@@ -111,8 +123,9 @@ def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, ba
 
 def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0, mission_s=(60.0, 120.0),
                       target_fpr: float = 0.01, seed: int = 0, worlds=CAL_WORLDS, batch: int = 64,
-                      verbose: bool = True):
-  """Record `missions` attack-free missions (worlds round robin) and calibrate. Returns (DetectorConfig, meta)."""
+                      h_margin: float | None = None, verbose: bool = True):
+  """Record `missions` attack-free missions (worlds round robin) and calibrate. Returns (DetectorConfig, meta).
+  h_margin: calibrate's threshold margin over the per-mission maxima (None: the DetectorConfig default)."""
   import jax  # noqa: PLC0415
   import jax.numpy as jnp  # noqa: PLC0415
 
@@ -126,6 +139,8 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
   mcfg = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(
       min_duration_s=float(mission_s[0]), max_duration_s=float(mission_s[1]))
   base = (det.DetectorConfig.drone if vehicle == "drone" else det.DetectorConfig.rover)(calibrated=False)
+  if h_margin is not None:
+    base = dataclasses.replace(base, h_margin=float(h_margin))
   # detector_config given: the env does not read the (possibly missing or stale) preset being regenerated.
   env = envs.make(vehicle, mission=mcfg, worlds=tuple(worlds), detector_config=base)
   ids = [worlds_lib.PRESET_NAMES.index(worlds[i % len(worlds)]) for i in range(missions)]
@@ -169,6 +184,8 @@ def main(argv=None):
                   help="nominal mission length range (s), MissionConfig min/max_duration_s")
   ap.add_argument("--target-fpr", type=float, default=0.01, help="false alarms per mission")
   ap.add_argument("--worlds", default=",".join(CAL_WORLDS), help="comma-separated world presets (round robin)")
+  ap.add_argument("--h-margin", type=float, default=None,
+                  help=f"threshold margin over the per-mission CUSUM maxima (default {det.DetectorConfig.h_margin})")
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--batch", type=int, default=64)
   ap.add_argument("--out", default="", help="default: assets/detector_<vehicle>.json")
@@ -176,7 +193,7 @@ def main(argv=None):
   worlds = tuple(w for w in a.worlds.split(",") if w)
   try:
     cfg, meta = calibrate_vehicle(a.vehicle, a.missions, a.seconds, tuple(a.mission_s), a.target_fpr, a.seed,
-                                  worlds, a.batch)
+                                  worlds, a.batch, a.h_margin)
   except ValueError as e:
     ap.error(str(e))
   out = a.out or default_path(a.vehicle)
