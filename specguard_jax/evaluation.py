@@ -6,7 +6,7 @@ A setting is (sensor or None, profile): its missions get a random Table 3 attack
 `seed` (use a seed the training never saw: training seeds its env resets from TrainConfig.seed).
 
 Per setting: missions, svr (share of missions with any spec's episode robustness < 0), critical (S1/S2/S12
-violated), rsr (completed / missions, for attacked settings the paper's recovery success rate), collision, crash,
+violated; the table's critical flags), rsr (completed / missions, for attacked settings the paper's recovery success rate), collision, crash,
 stall, fence_breach, detected (alarm raised at least once).
 """
 
@@ -21,9 +21,6 @@ import numpy as np
 from envs import missions as missions_lib
 from envs.base import tree_where
 from specguard_jax import attacks as attacks_lib
-
-CRITICAL = ("S1", "S2", "S12")
-
 
 def default_settings(sensors=attacks_lib.SENSOR_NAMES, profiles=attacks_lib.PROFILES):
   return [(None, "none")] + [(s, p) for s in sensors for p in profiles]
@@ -66,7 +63,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int):
   state, t = jax.lax.while_loop(cond, body, (state, jnp.zeros((), jnp.int32)))
   ep = state.info["episode"]
   rob = state.info["spec_robustness"]
-  crit = jnp.asarray([nm in CRITICAL for nm in env.spec_names])
+  crit = jnp.asarray(env.spec_table.critical)
   out = {"violated": jnp.any(rob < 0, -1), "critical": jnp.any((rob < 0) & crit, -1),
          "complete": ep["complete"] > 0, "collision": ep["collision"] > 0, "crash": ep["crash"] > 0,
          "stall": ep["stall"] > 0, "fence_breach": ep["fence_breach"] > 0, "attacked": ep["attacked"] > 0,

@@ -31,9 +31,6 @@ from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import losses, networks
 from specguard_jax.ppo.config import TrainConfig
 
-CRITICAL = ("S1", "S2", "S12")
-
-
 @struct.dataclass
 class Carry:
   """Everything a phase's iterations thread through (checkpointed whole)."""
@@ -105,8 +102,7 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
   sg, aa = make_agents(cfg)
   adversarial = phase == 2
   base = env.env if adversarial else env
-  spec_names = base.spec_names
-  crit = jnp.asarray([n in CRITICAL for n in spec_names])
+  crit = jnp.asarray(base.spec_table.critical)   # critical specs (S1, S2, S12 by default) of the env's table
   gamma = cfg.sg.gamma
   bonus = (-cfg.completion_bonus / (1.0 - gamma)) if cfg.completion_bonus < 0 else cfg.completion_bonus
   rc = adversarial and cfg.variant == "rc"

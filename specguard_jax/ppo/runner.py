@@ -14,7 +14,6 @@ bit-identical to an uninterrupted run (on CPU; tests/test_train.py).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -91,11 +90,6 @@ class _Progress:
     line = (f"phase {phase} [{bar}] {steps / 1e6:7.2f}/{total / 1e6:.2f}M steps  ETA {eta_s}  "
             f"{sps / 1e3:8.1f}k sps  SVR {svr:5.3f}  RSR {rsr:5.3f}  return {ret:8.2f}")
     print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
-
-
-def _nanmean(xs):
-  xs = [x for x in xs if x == x]
-  return float(np.mean(xs)) if xs else float("nan")
 
 
 def converged(history, window: int, eps: float) -> bool:
@@ -241,9 +235,9 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
             host["history"].append([d["return"], d["return_aa"]])
             host["history"] = host["history"][-2 * cfg.converge_window:]
         steps_phase = it_end * cfg.steps_per_iter
-        recent = [derived({k: float(np.asarray(v)[-1]) for k, v in m.items()})]
-        bar.show(number, steps_phase, phase_total, sps, recent[0]["svr"], recent[0]["rsr"], recent[0]["return"])
-        summary_phase[number] = recent[0]
+        last = derived({k: float(np.asarray(v)[-1]) for k, v in m.items()})
+        bar.show(number, steps_phase, phase_total, sps, last["svr"], last["rsr"], last["return"])
+        summary_phase[number] = last
         if number == 2 and converged(host["history"], cfg.converge_window, cfg.converge_eps):
           host["converged"] = True
           log(f"\n[train] phase 2 converged at iteration {it_end} (|d return / d iter| < {cfg.converge_eps})")
@@ -315,6 +309,3 @@ def default_sizes(backend: str) -> dict:
   return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
               eval_missions=16)
 
-
-def with_defaults(cfg: TrainConfig, **overrides) -> TrainConfig:
-  return dataclasses.replace(cfg, **overrides)
