@@ -136,7 +136,11 @@ def main(argv=None):
       print(" | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in keys))
     print(f"[train] sweep of {len(rows)} runs: {os.path.abspath(out)}/sweep.json")
     return 0
-  s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export)
+  try:
+    s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export)
+  except ValueError as e:
+    print(f"\ntrain.py: error: {e}", file=sys.stderr)
+    return 2
   if s.get("interrupted"):
     return 130
   print(f"[train] done: {s['env_steps']:,} env steps in {s['train_wall_s']:.0f} s of training calls")

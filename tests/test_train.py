@@ -142,3 +142,15 @@ def test_tiny_train_evaluate_export_smoke(runs):
   fn = export.load_jax_policy(str(run))
   out = fn(np.zeros((2, 24), np.float32))
   assert np.all(np.isfinite(np.asarray(out["setpoint"])))
+
+
+def test_corrupt_checkpoint_is_a_one_line_error(tmp_path, capsys):
+  run = tmp_path / "run"
+  (run / "checkpoints" / "1" / "host").mkdir(parents=True)
+  (run / "config.json").write_text(json.dumps(tiny().to_dict()))
+  (run / "checkpoints" / "1" / "host" / "metadata").write_text("garbage")
+  (run / "checkpoints" / "1" / "_CHECKPOINT_METADATA").write_text("{}")
+  assert train_cli.main(["--resume", str(run), "--no-progress"]) == 2
+  err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+  assert len(err) == 1 and "cannot restore checkpoint" in err[0], err
+  assert (run / "checkpoints" / "1" / "host" / "metadata").read_text() == "garbage"   # nothing deleted

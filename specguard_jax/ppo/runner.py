@@ -134,12 +134,20 @@ def _restore_host(mgr):
   step = mgr.latest_step()
   if step is None:
     return None, None
-  return step, mgr.restore(step, args=ocp.args.Composite(host=ocp.args.JsonRestore()))["host"]
+  try:
+    return step, mgr.restore(step, args=ocp.args.Composite(host=ocp.args.JsonRestore()))["host"]
+  except Exception as e:  # noqa: BLE001 - any Orbax/IO failure is a bad checkpoint to the user
+    raise ValueError(f"cannot restore checkpoint {mgr.directory}/{step}: {type(e).__name__}: "
+                     f"{str(e).splitlines()[0] if str(e) else ''}") from None
 
 
 def _restore_carry(mgr, step, abstract):
   import orbax.checkpoint as ocp
-  packed = mgr.restore(step, args=ocp.args.Composite(carry=ocp.args.StandardRestore(_pack(abstract))))["carry"]
+  try:
+    packed = mgr.restore(step, args=ocp.args.Composite(carry=ocp.args.StandardRestore(_pack(abstract))))["carry"]
+  except Exception as e:  # noqa: BLE001
+    raise ValueError(f"cannot restore checkpoint {mgr.directory}/{step} (corrupt, or written by another config): "
+                     f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
   return _unpack(abstract, packed)
 
 
