@@ -15,3 +15,13 @@ def pytest_collection_modifyitems(config, items):
   for item in items:
     if "gpu" in item.keywords:
       item.add_marker(skip)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_code():
+  """Drop each module's compiled executables when it ends. XLA:CPU maps every executable's code into memory; a whole
+  suite in one process otherwise climbs past the kernel's 65,530-mapping limit and LLVM aborts mid-compile."""
+  yield
+  import gc
+  jax.clear_caches()
+  gc.collect()
