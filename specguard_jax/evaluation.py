@@ -1,97 +1,264 @@
-"""Held-out evaluation of a controller: many missions per setting (attack-free, overt/stealthy per sensor), one
-episode each, all settings in ONE batched, jitted rollout (settings are data).
+"""Held-out evaluation rollouts: many missions per attack setting, one episode each, all settings in ONE batched,
+jitted while_loop rollout per (env config, policy) (settings are data). The host only aggregates
+(specguard_jax.metrics).
 
-A setting is (sensor or None, profile): its missions get a random Table 3 attack on that sensor
-(specguard_jax.attacks.sample_attack: onset 15-50 % into the mission, 15-40 s). Missions and worlds are drawn from
-`seed` (use a seed the training never saw: training seeds its env resets from TrainConfig.seed).
+Missions are paired across settings and controllers: mission j of every setting has the same mission plan, world
+and sensor-noise / domain-randomisation seed (all drawn from fold_in(key, j)); only the attack differs between
+settings (drawn from mission j's attack key folded with the setting's name), and it is the same for every controller.
+So the no-protection controller's records in the same setting are each mission's "twin" (was the attack meant to
+cause a violation?) and its attack-free records are the ground-truth run T_GT of the mission delay.
 
-Per setting: missions, svr (share of missions with any spec's episode robustness < 0), critical (S1/S2/S12
-violated; the table's critical flags), rsr (completed / missions, for attacked settings the paper's recovery success rate), collision, crash,
-stall, fence_breach, detected (alarm raised at least once).
+A `Setting` is a named attack distribution (specguard_jax.attacks.AttackConfig, None = attack-free): a random
+Table 3 attack on its sensor(s) (onset 15-50 % into the mission, 15-40 s).
+
+`rollout` returns per-mission records (numpy, leading axis = missions, settings concatenated in order):
+  setting [n] int, mission [n] int (index j), world [n] int
+  violated [n, S] bool   spec robustness over the whole episode < 0 (online STL monitor, = offline robustness)
+  complete, collision, crash, stall, nan, fence_breach, unfinished, attacked, detected [n] bool
+  t_end [n] s            episode end (the completion time when complete)
+  final_dist [n] m       true distance to the last waypoint at the end (horizontal when the mission lands there or
+                         for the rover, else 3D)
+  onset, attack_end [n] s  scheduled attack window (1e9 when attack-free)
+  first_alarm [n] s      first detector alarm (any time; BIG when none or no detector)
+  det_t [n] s            first alarm at or after the attack onset (BIG when none)
+  last_bad [n] s         last step in the recovery window [det_t, min(attack_end, t_end)] at which some spec's
+                         instantaneous compliance failed (-BIG when none)
+  end_ok [n] bool        instantaneous compliance at the last step of that window
+  override_s [n] s       time the recovery policy's override was active
+  min_obstacle [n] m     closest approach to an obstacle
+Instantaneous compliance of a spec at a step = its binary per-step reward (specguard_jax.rewards: the body of an
+always-spec, guard -> condition for S5/S7/S10), over the specs that carry a reward.
+Trajectories (`n_traj` > 0): the first n_traj missions of every setting also record per step
+[true pos 3, estimated pos 3, true yaw, estimated yaw, altitude, alarm, override, time] (traj [T, K, 12]).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import time
+import zlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+import envs as envs_lib
 from envs import missions as missions_lib
 from envs.base import tree_where
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import math3d
 
-def default_settings(sensors=attacks_lib.SENSOR_NAMES, profiles=attacks_lib.PROFILES):
-  return [(None, "none")] + [(s, p) for s in sensors for p in profiles]
+BIG = 1e9
+TRAJ_FIELDS = ("x", "y", "z", "est_x", "est_y", "est_z", "yaw", "est_yaw", "altitude", "alarm", "override", "time")
 
 
-@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy"))
-def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int):
+@dataclasses.dataclass(frozen=True)
+class Setting:
+  """A named attack distribution: attack None = attack-free."""
+  name: str
+  attack: attacks_lib.AttackConfig | None = None
+
+  @property
+  def attacked(self) -> bool:
+    return self.attack is not None
+
+
+def setting(sensors=None, profile: str = "overt") -> Setting:
+  """Setting of a single- or multi-sensor attack: setting('gps', 'overt') -> 'gps/overt'; setting(('gps', 'gyro'))
+  -> 'gps+gyro/overt' (both at once); setting(None) -> 'attack_free'."""
+  if sensors is None:
+    return Setting("attack_free")
+  sensors = (sensors,) if isinstance(sensors, str) else tuple(sensors)
+  acfg = attacks_lib.AttackConfig(sensors=sensors, profiles=(profile,), n_sensors=len(sensors))
+  return Setting(f"{'+'.join(sensors)}/{profile}", acfg)
+
+
+def default_settings(sensors=attacks_lib.SENSOR_NAMES, profiles=attacks_lib.PROFILES) -> tuple:
+  return (setting(None),) + tuple(setting(s, p) for s in sensors for p in profiles)
+
+
+def _as_settings(settings) -> tuple:
+  """Accept Setting objects or the legacy (sensor | None, profile) pairs."""
+  out = []
+  for s in settings:
+    out.append(s if isinstance(s, Setting) else setting(s[0], s[1]))
+  names = [s.name for s in out]
+  if len(set(names)) != len(names):
+    raise ValueError(f"duplicate settings in {names}")
+  return tuple(out)
+
+
+_ENVS: dict = {}
+_COMPILED: dict = {}
+
+
+def make_env(vehicle: str, **overrides):
+  """envs.make, cached per (vehicle, overrides): the env is a static jit argument, one object per config."""
+  key = (vehicle, tuple(sorted(overrides.items())))
+  if key not in _ENVS:
+    _ENVS[key] = envs_lib.make(vehicle, **overrides)
+  return _ENVS[key]
+
+
+def clear_cache() -> None:
+  """Drop the cached envs and compiled rollouts."""
+  _ENVS.clear()
+  _COMPILED.clear()
+
+
+def _setting_salt(s: Setting) -> int:
+  return zlib.crc32(s.name.encode()) & 0x7FFFFFFF
+
+
+@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy", "n_traj"))
+def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, n_traj: int = 0):
   n_set = len(settings)
-  keys = jax.random.split(key, n_set * n)
+  mission_idx = jnp.tile(jnp.arange(n), n_set)
   setting_id = jnp.repeat(jnp.arange(n_set), n)
   world_ids = jnp.asarray(env.world_ids, jnp.int32)
+  salts = jnp.asarray([_setting_salt(s) for s in settings], jnp.uint32)
 
-  def reset_one(k, sid):
-    k_m, k_a, k_w, k_r = jax.random.split(k, 4)
+  def reset_one(j, sid):
+    k_m, k_a, k_w, k_r = jax.random.split(jax.random.fold_in(key, j), 4)
     mission = missions_lib.generate_mission(env.mission_cfg, k_m)
-    scheds = []
-    for sensor, profile in settings:
-      if sensor is None:
-        scheds.append(attacks_lib.no_attack())
-      else:
-        acfg = attacks_lib.AttackConfig(sensors=(sensor,), profiles=(profile,))
-        scheds.append(attacks_lib.sample_attack(acfg, k_a, mission.nominal_duration))
-    stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *scheds)
-    attack = jax.tree.map(lambda x: x[sid], stacked)
+    k_a = jax.random.fold_in(k_a, salts[sid])
+    scheds = [attacks_lib.no_attack() if s.attack is None else
+              attacks_lib.sample_attack(s.attack, k_a, mission.nominal_duration) for s in settings]
+    attack = jax.tree.map(lambda *xs: jnp.stack(xs)[sid], *scheds)
     wid = world_ids[jax.random.randint(k_w, (), 0, len(env.world_ids))]
-    return env.reset_in_world(k_r, wid, mission, attack)
+    return env.reset_in_world(k_r, wid, mission, attack), wid
 
-  state = jax.vmap(reset_one)(keys, setting_id)
+  state, wid = jax.vmap(reset_one)(mission_idx, setting_id)
   step = jax.vmap(env.step)
+  has_det = "alarm" in state.info
+  weights = env.reward_fn.weights() > 0
+  per_spec = jax.vmap(lambda sig: env.reward_fn.per_spec(sig, binary=True))
+  b = n_set * n
+  onset = state.info["attack"].onset
+  attack_end = onset + state.info["attack"].duration
+  big = jnp.full((b,), BIG, jnp.float32)
+  rec0 = {"first_alarm": big, "det_t": big, "last_bad": -big, "end_ok": jnp.ones((b,), bool),
+          "override_s": jnp.zeros((b,), jnp.float32)}
+  traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
+  if len(traj_idx):
+    rec0["traj"] = jnp.zeros((max_steps + 1, len(traj_idx), len(TRAJ_FIELDS)), jnp.float32)
+
+  def traj_row(s):
+    sim = jax.tree.map(lambda x: x[traj_idx], s.info["sim"])
+    yaw = jax.vmap(math3d.quat_to_euler)(sim["truth"].quat)[:, 2]
+    est_yaw = jax.vmap(math3d.quat_to_euler)(sim["ekf"].quat)[:, 2]
+    alarm = s.info["alarm"][traj_idx] if has_det else jnp.zeros(len(traj_idx))
+    cols = [sim["truth"].pos, sim["ekf"].pos, yaw[:, None], est_yaw[:, None],
+            s.info["signals"]["altitude"][traj_idx, None], alarm[:, None],
+            s.info["override_active"][traj_idx, None], s.info["time"][traj_idx, None]]
+    return jnp.concatenate(cols, axis=-1).astype(jnp.float32)
+
+  if len(traj_idx):
+    rec0["traj"] = rec0["traj"].at[0].set(traj_row(state))
 
   def cond(c):
-    s, t = c
+    s, t, _ = c
     return (t < max_steps) & ~jnp.all(s.done > 0)
 
   def body(c):
-    s, t = c
+    s, t, rec = c
+    live = s.done == 0
     nxt = step(s, policy(policy_params, s.obs))
-    return tree_where(s.done > 0, s, nxt), t + 1
+    now = nxt.info["time"]
+    rec = dict(rec)
+    if has_det:
+      alarm = (nxt.info["alarm"] > 0) & live
+      rec["first_alarm"] = jnp.where(alarm & (rec["first_alarm"] >= BIG), now, rec["first_alarm"])
+      rec["det_t"] = jnp.where(alarm & (now >= onset) & (rec["det_t"] >= BIG), now, rec["det_t"])
+    ok = jnp.all((per_spec(nxt.info["signals"]) > 0.5) | ~weights, axis=-1)
+    window = live & (rec["det_t"] < BIG) & (now >= rec["det_t"]) & (now <= attack_end + 1e-6)
+    rec["last_bad"] = jnp.where(window & ~ok, now, rec["last_bad"])
+    rec["end_ok"] = jnp.where(window, ok, rec["end_ok"])
+    rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
+    new = tree_where(s.done > 0, s, nxt)
+    if "traj" in rec:
+      rec["traj"] = rec["traj"].at[t + 1].set(traj_row(new))
+    return new, t + 1, rec
 
-  state, t = jax.lax.while_loop(cond, body, (state, jnp.zeros((), jnp.int32)))
+  state, t, rec = jax.lax.while_loop(cond, body, (state, jnp.zeros((), jnp.int32), rec0))
   ep = state.info["episode"]
-  rob = state.info["spec_robustness"]
-  crit = jnp.asarray(env.spec_table.critical)
-  out = {"violated": jnp.any(rob < 0, -1), "critical": jnp.any((rob < 0) & crit, -1),
+  mission, truth = state.info["mission"], state.info["sim"]["truth"]
+  last_wp = jax.vmap(missions_lib.final_waypoint)(mission)
+  d = last_wp - truth.pos
+  planar = (mission.land > 0.5) | (env.vehicle == "rover")
+  final_dist = jnp.where(planar, jnp.linalg.norm(d[:, :2], axis=-1), jnp.linalg.norm(d, axis=-1))
+  out = {"setting": setting_id, "mission": mission_idx, "world": wid,
+         "violated": state.info["spec_robustness"] < 0,
          "complete": ep["complete"] > 0, "collision": ep["collision"] > 0, "crash": ep["crash"] > 0,
-         "stall": ep["stall"] > 0, "fence_breach": ep["fence_breach"] > 0, "attacked": ep["attacked"] > 0,
-         "unfinished": state.done == 0, "per_spec": rob < 0}
-  if "detected" in ep:
-    out["detected"] = ep["detected"] > 0
-  return out, setting_id, t
+         "stall": ep["stall"] > 0, "nan": ep["nan"] > 0, "fence_breach": ep["fence_breach"] > 0,
+         "attacked": ep["attacked"] > 0, "unfinished": state.done == 0, "t_end": state.info["time"],
+         "final_dist": final_dist, "onset": onset, "attack_end": attack_end,
+         "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
+         "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "last_bad": rec["last_bad"],
+         "end_ok": rec["end_ok"], "override_s": rec["override_s"], "waypoints": mission.waypoints,
+         "n_waypoints": mission.n_waypoints}
+  return out, rec.get("traj"), t
+
+
+def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 10_000, max_s: float = 400.0,
+            n_traj: int = 0, timing: dict | None = None, cache: bool = True):
+  """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
+  argument). Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories
+  or None: {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K],
+  'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run). timing (optional dict) gets compile_s and
+  run_s. cache: keep the compiled executable for the next call with the same static configuration (clear_cache()
+  frees them)."""
+  settings = _as_settings(settings)
+  static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
+                n_traj=int(n_traj))
+  ck = tuple(static.items()) + (jax.tree.structure(policy_params),)
+  key = jax.random.PRNGKey(seed)
+  t0 = time.perf_counter()
+  fn = _COMPILED.get(ck)
+  if fn is None:   # ahead-of-time compile so compile and flight times are reported apart
+    fn = _rollout.lower(policy_params=policy_params, key=key, **static).compile()
+    if cache:
+      _COMPILED[ck] = fn
+  t1 = time.perf_counter()
+  out, traj, t = jax.block_until_ready(fn(policy_params=policy_params, key=key))
+  if timing is not None:
+    timing.update(compile_s=t1 - t0, run_s=time.perf_counter() - t1)
+  out, traj, t = jax.device_get((out, traj, t))
+  out = {k: np.asarray(v) for k, v in out.items()}
+  if traj is not None:
+    k = min(int(n_traj), int(missions))
+    idx = np.asarray([s * int(missions) + j for s in range(len(settings)) for j in range(k)])
+    traj = {"rows": np.asarray(traj)[: int(t) + 1], "index": idx, "setting": out["setting"][idx],
+            "mission": out["mission"][idx], "waypoints": out.pop("waypoints")[idx],
+            "n_waypoints": out.pop("n_waypoints")[idx]}
+  else:
+    out.pop("waypoints"), out.pop("n_waypoints")
+  return out, traj, int(t)
 
 
 def evaluate(env, policy, policy_params, *, missions: int = 1000, settings=None, seed: int = 10_000,
              max_s: float = 400.0) -> dict:
-  """Fly `missions` held-out missions per setting with `policy(params, obs [B, n]) -> action [B, 3]` (a hashable,
-  module-level function: it is a static argument). Returns {setting name: metrics dict} (see module docstring)."""
-  settings = tuple(settings or default_settings())
-  out, sid, t = _rollout(env, policy, policy_params, jax.random.PRNGKey(seed), settings, missions,
-                         int(max_s / env.dt))
-  out, sid = jax.device_get((out, sid))
+  """Held-out summary of one controller (no twins: used by the trainer). Returns {setting name: metrics} with
+  missions, svr (share of missions with any spec violated or a crash/collision), critical (a critical spec of the
+  table violated), rsr (specguard_jax.metrics: the paper's recovery success: complete, within 5 m of the last
+  waypoint, no crash/collision/stall), complete, collision, crash, stall, fence_breach, attacked, unfinished,
+  detected, violations_per_spec; plus '_steps'."""
+  from specguard_jax import metrics
+  settings = _as_settings(settings or default_settings())
+  rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s, cache=False)
+  crit = np.asarray(env.spec_table.critical, bool)
   res = {}
-  for i, (sensor, profile) in enumerate(settings):
-    m = np.asarray(sid) == i
-    name = "attack_free" if sensor is None else f"{sensor}/{profile}"
-    r = {"missions": int(m.sum())}
-    for k in ("violated", "critical", "complete", "collision", "crash", "stall", "fence_breach", "attacked",
-              "unfinished", "detected"):
-      if k in out:
-        r[k if k != "violated" else "svr"] = float(np.mean(out[k][m]))
-    r["rsr"] = r["complete"]
-    r["violations_per_spec"] = dict(zip(env.spec_names, np.mean(out["per_spec"][m], 0).round(4).tolist()))
-    res[name] = r
-  res["_steps"] = int(t)
+  for i, s in enumerate(settings):
+    r = metrics.select(rec, rec["setting"] == i)
+    out = {"missions": int(len(r["complete"])), "svr": float(np.mean(metrics.violation(r))),
+           "critical": float(np.mean(np.any(r["violated"][:, crit], -1))) if crit.any() else 0.0,
+           "rsr": float(np.mean(metrics.recovered(r)))}
+    for k in ("complete", "collision", "crash", "stall", "fence_breach", "attacked", "unfinished"):
+      out[k] = float(np.mean(r[k]))
+    if env.config.detector != "none":
+      out["detected"] = float(np.mean(r["detected"]))
+    out["violations_per_spec"] = dict(zip(env.spec_names, np.mean(r["violated"], 0).round(4).tolist()))
+    res[s.name] = out
+  res["_steps"] = t
   return res

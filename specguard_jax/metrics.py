@@ -1,0 +1,212 @@
+"""The paper's evaluation metrics (Sec. 5.4) on per-mission records (specguard_jax.evaluation.rollout), pure numpy.
+
+Records are dicts of arrays with one row per mission (keys as evaluation.rollout; tests build them by hand). The
+"twin" of a mission is the same mission (plan, world, attack schedule, sensor-noise seed) flown by the autopilot
+alone (no protection); "gt" is that mission flown by the autopilot alone without the attack.
+
+Definitions (what we chose where the paper leaves room):
+  violation       any spec's whole-episode robustness < 0, or a crash / collision / NaN end (a mission that ends
+                  in the ground has failed its specs even if the monitor had no time to see it).
+  svr             the paper's SVR = observed / intended violations. Intended: the attack was meant to cause a
+                  violation, operationalised as "the no-protection twin had a violation". svr = share of violating
+                  missions among those whose twin violated. Attack-free settings count any violation over all
+                  missions (svr = svr_all). svr_all = share of violating missions over all missions.
+  svr_spec[k]     per-spec SVR: among missions whose twin violated spec k, the share where spec k was violated too
+                  (None where no twin violated k). spec_rate[k]: share of all missions violating spec k.
+  critical_rate   share of missions violating any critical spec of the table (S1, S2, S12 by default).
+  rsr             recovered / missions: recovered = nav completed the mission AND the true final position is within
+                  5 m of the last waypoint (horizontal for landing missions and the rover) AND no crash, collision,
+                  stall or NaN. Over all missions of an attacked setting (missions under attack); for attack-free
+                  settings the same formula is the success rate.
+  md              mission delay, per mission (T_SG - T_GT) / T_b x 100, over missions completed by both the
+                  controller and its gt twin; T_GT = the gt twin's completion time; T_b = (T_min + T_max) / 2 of
+                  the completion times of all completed gt twins of the evaluation (the paper's "average of the
+                  minimum and maximum mission completion times in attack free missions"). md_rel: the same with
+                  T_b = T_GT of each mission (a per-mission relative delay, for reference).
+  t2r             time to recovery (s), for attacked missions whose attack was detected (first alarm at or after
+                  the onset, t_d): recovery is the first time after which every spec is instantaneously compliant
+                  until the attack ends (or the mission ends, if earlier): t_r = (last non-compliant step in
+                  [t_d, attack end]) + dt, or t_d when there was none; T2R = t_r - t_d. A mission still
+                  non-compliant at the window's last step, or ending in a crash/collision, never recovered
+                  (T2R = inf: the CDF stays below 1).
+  detection       detect_rate: attacked missions with an alarm at or after the onset; delay = t_d - onset (s);
+                  false_alarm_rate: an alarm before the onset (attack-free: any alarm).
+Confidence intervals: Wilson score intervals (95 %) for proportions, Student-t intervals (95 %) for means.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+RSR_RADIUS_M = 5.0
+BIG = 1e9
+Z95 = 1.959963984540054
+
+
+def select(rec: dict, mask) -> dict:
+  """Rows of a record dict where mask is True."""
+  mask = np.asarray(mask, bool)
+  return {k: np.asarray(v)[mask] for k, v in rec.items()}
+
+
+def concat(recs) -> dict:
+  recs = list(recs)
+  return {k: np.concatenate([np.asarray(r[k]) for r in recs], 0) for k in recs[0]}
+
+
+def _b(r, k):
+  return np.asarray(r[k], bool)
+
+
+def violation(r) -> np.ndarray:
+  """[n] bool: any spec violated, or a crash / collision / NaN end."""
+  v = np.any(_b(r, "violated"), axis=-1)
+  for k in ("crash", "collision", "nan"):
+    if k in r:
+      v = v | _b(r, k)
+  return v
+
+
+def recovered(r, radius: float = RSR_RADIUS_M) -> np.ndarray:
+  """[n] bool: completed, final true position within `radius` m of the last waypoint, no crash/collision/stall/NaN."""
+  ok = _b(r, "complete") & (np.asarray(r["final_dist"], float) <= radius)
+  for k in ("crash", "collision", "stall", "nan"):
+    if k in r:
+      ok = ok & ~_b(r, k)
+  return ok
+
+
+def wilson(k, n, z: float = Z95) -> tuple:
+  """Wilson score interval (lo, hi) of k successes in n trials; (nan, nan) when n == 0."""
+  k, n = float(k), float(n)
+  if n <= 0:
+    return (math.nan, math.nan)
+  p = k / n
+  den = 1.0 + z * z / n
+  c = (p + z * z / (2 * n)) / den
+  h = z * math.sqrt(max(p * (1 - p) / n + z * z / (4 * n * n), 0.0)) / den
+  return (max(0.0, c - h), min(1.0, c + h))
+
+
+def mean_ci(x, conf: float = 0.95) -> tuple:
+  """(mean, lo, hi) with a Student-t interval; nan for no data, (m, m, m) for one value."""
+  x = np.asarray(x, float)
+  x = x[np.isfinite(x)]
+  if len(x) == 0:
+    return (math.nan, math.nan, math.nan)
+  m = float(np.mean(x))
+  if len(x) == 1:
+    return (m, m, m)
+  from scipy import stats
+  h = float(stats.t.ppf(0.5 + conf / 2, len(x) - 1) * np.std(x, ddof=1) / math.sqrt(len(x)))
+  return (m, m - h, m + h)
+
+
+def rate(mask, among=None) -> dict:
+  """{'value', 'ci', 'k', 'n'} of a boolean [n] (restricted to `among`)."""
+  mask = np.asarray(mask, bool)
+  if among is not None:
+    mask = mask[np.asarray(among, bool)]
+  k, n = int(mask.sum()), int(mask.size)
+  return {"value": (k / n) if n else None, "ci": list(wilson(k, n)) if n else None, "k": k, "n": n}
+
+
+def baseline_time(gt) -> float:
+  """T_b = (T_min + T_max) / 2 over the completed attack-free (gt) runs; nan when none completed."""
+  t = np.asarray(gt["t_end"], float)[_b(gt, "complete")]
+  return float((t.min() + t.max()) / 2) if len(t) else math.nan
+
+
+def mission_delay(r, gt, t_b: float) -> tuple:
+  """(md [n] %, md_rel [n] %): nan where the mission or its gt twin did not complete."""
+  both = _b(r, "complete") & _b(gt, "complete")
+  d = np.asarray(r["t_end"], float) - np.asarray(gt["t_end"], float)
+  md = np.where(both, d / t_b * 100.0, np.nan) if np.isfinite(t_b) and t_b > 0 else np.full(d.shape, np.nan)
+  t_gt = np.asarray(gt["t_end"], float)
+  rel = np.where(both & (t_gt > 0), d / np.maximum(t_gt, 1e-9) * 100.0, np.nan)
+  return md, rel
+
+
+def t2r(r, dt: float) -> np.ndarray:
+  """[n] time to recovery (s): nan where not applicable (not attacked or never detected), inf where it never
+  recovered (see module docstring)."""
+  det = np.asarray(r["det_t"], float)
+  applicable = _b(r, "attacked") & (det < BIG / 2)
+  last_bad = np.asarray(r["last_bad"], float)
+  ok = _b(r, "end_ok")
+  for k in ("crash", "collision", "nan"):
+    if k in r:
+      ok = ok & ~_b(r, k)
+  val = np.where(last_bad > -BIG / 2, np.maximum(last_bad + dt - det, 0.0), 0.0)
+  val = np.where(ok, val, np.inf)
+  return np.where(applicable, val, np.nan)
+
+
+def _stats(x) -> dict | None:
+  x = np.asarray(x, float)
+  x = x[np.isfinite(x)]
+  if not len(x):
+    return None
+  m, lo, hi = mean_ci(x)
+  return {"mean": m, "ci": [lo, hi], "median": float(np.median(x)), "n": int(len(x))}
+
+
+def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, critical, t_b: float | None = None,
+              per_spec: bool = True) -> dict:
+  """Metrics of one controller on one (possibly pooled) setting. twin: the no-protection records of the same
+  missions in the same order (None: svr falls back to svr_all and is flagged); gt: their attack-free no-protection
+  records (None: no md); t_b: the mission-delay baseline (default baseline_time(gt)). Rates come as
+  {'value', 'ci', 'k', 'n'}; the top-level svr/rsr/md/collision_rate are plain numbers (None when undefined)."""
+  n = len(np.asarray(r["complete"]))
+  viol = violation(r)
+  out = {"missions": n, "attacked": attacked}
+  out["svr_all_rate"] = rate(viol)
+  if attacked and twin is not None:
+    intended = violation(twin)
+    out["svr_rate"] = rate(viol, intended)
+    out["intended"] = int(intended.sum())
+  else:
+    out["svr_rate"] = dict(out["svr_all_rate"])
+    out["intended"] = n if not attacked else None
+    if attacked:
+      out["svr_note"] = "no no-protection twin: svr = svr_all"
+  out["rsr_rate"] = rate(recovered(r))
+  out["collision_rate_ci"] = rate(_b(r, "collision"))
+  out["crash_rate"] = rate(_b(r, "crash"))
+  out["stall_rate"] = rate(_b(r, "stall"))
+  crit = np.asarray(critical, bool)
+  out["critical_rate"] = rate(np.any(_b(r, "violated")[:, crit], -1) if crit.any() else np.zeros(n, bool))
+  if per_spec:
+    v = _b(r, "violated")
+    out["spec_rate"] = {s: float(np.mean(v[:, i])) if n else None for i, s in enumerate(spec_names)}
+    if attacked and twin is not None:
+      tv = _b(twin, "violated")
+      out["svr_spec"] = {s: (float(np.mean(v[tv[:, i], i])) if tv[:, i].any() else None)
+                         for i, s in enumerate(spec_names)}
+  if gt is not None:
+    tb = baseline_time(gt) if t_b is None else t_b
+    md, rel = mission_delay(r, gt, tb)
+    out["md_stats"], out["md_rel_stats"], out["t_b"] = _stats(md), _stats(rel), tb
+  t = t2r(r, dt)
+  app = np.isfinite(t) | np.isinf(t)
+  if attacked:
+    out["t2r_recovered"] = rate(np.isfinite(t), app) if app.any() else None
+    out["t2r_stats"] = _stats(t)
+    fin = np.sort(t[np.isfinite(t)])
+    out["t2r_quantiles"] = ({f"p{q}": float(np.percentile(fin, q)) for q in (10, 25, 50, 75, 90)}
+                            if len(fin) else None)
+    det = np.asarray(r["det_t"], float)
+    detected = det < BIG / 2
+    out["detect_rate"] = rate(detected, _b(r, "attacked"))
+    out["detection_delay"] = _stats(np.where(detected & _b(r, "attacked"), det - np.asarray(r["onset"]), np.nan))
+    out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < np.asarray(r["onset"], float))
+  else:
+    out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < BIG / 2)
+  out["svr"] = out["svr_rate"]["value"]
+  out["svr_all"] = out["svr_all_rate"]["value"]
+  out["rsr"] = out["rsr_rate"]["value"]
+  out["collision_rate"] = out["collision_rate_ci"]["value"]
+  out["md"] = out["md_stats"]["mean"] if out.get("md_stats") else None
+  return out

@@ -1,0 +1,503 @@
+"""evaluate.py's report: metrics per group / controller / setting (specguard_jax.metrics), the paper's tables filled
+with ours beside the paper's numbers (report.json, report.md), PNG figures (matplotlib, Agg) and per-mission
+records (records/<group>__<controller>.npz)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+
+from specguard_jax import metrics as M
+
+# The paper's numbers (CCS 2024, AirSim/PX4; percentages). Ranges where the paper gives only a range.
+PAPER = {
+    "compliance": {"compliance": 0.0, "binary": 25.0},
+    "table5": {"overt": {"no_protection": 100.0, "specguard_pc": 14.8, "specguard_rc": 13.5},
+               "stealthy": {"no_protection": 100.0, "specguard_pc": 18.66, "specguard_rc": 14.83}},
+    "fig9": {"overt": {"specguard_rc": (13.5, 92.1), "unrocker": (66.0, 46.0), "delorean": (66.0, 46.0),
+                       "ssr": ("66.8-79.1", "37.5-46"), "ftc": ("66.8-79.1", "37.5-46"),
+                       "pid_piper": ("66.8-79.1", "37.5-46")},
+             "stealthy": {"specguard_rc": (14.83, 90.41), "ftc": (90.0, 17.0), "unrocker": (86.0, 17.0),
+                          "ssr": (81.0, 35.0), "pid_piper": (70.0, 39.75), "delorean": (69.5, 43.0)}},
+    "fig10": {"svr_max": 3.33, "baro_svr": 0.0, "md_range": (3.2, 6.88)},
+    "ablation": {"specguard_rc": (13.5, 92.1), "delorean": (60.4, 45.8), "specguard_no_recon": (67.9, "~46")},
+    "multi": 24.0,
+    "unseen": {"suburban_to_urban": (14.6, 16.7), "urban_to_suburban": (12.1, 14.8)},
+    "rover_real": {"svr": 5.0, "rsr": 100.0, "md": 5.88},
+    "t2r": "SpecGuard-RC recovers 3x faster than SpecGuard-PC (CDF, Fig. 3b)",
+}
+SIM_LINE = ("Our numbers come from our MJX simulator (specguard-jax: MuJoCo MJX physics, our PX4/ArduPilot-like "
+            "autopilots, sensors, EKF and attacks), not the paper's AirSim/PX4 setup; compare shapes and ratios, not "
+            "absolute values.")
+
+
+def jsonable(x):
+  """Plain JSON types (numpy scalars/arrays, tuples, dataclasses' reprs)."""
+  if isinstance(x, dict):
+    return {str(k): jsonable(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [jsonable(v) for v in x]
+  if isinstance(x, (np.bool_, bool)):
+    return bool(x)
+  if isinstance(x, (np.integer,)):
+    return int(x)
+  if isinstance(x, (np.floating, float)):
+    x = float(x)
+    return x if math.isfinite(x) else None
+  if isinstance(x, np.ndarray):
+    return jsonable(x.tolist())
+  if x is None or isinstance(x, (int, str)):
+    return x
+  return repr(x)
+
+
+def _profile(name: str):
+  return name.split("/")[1] if "/" in name else None
+
+
+def _single(name: str) -> bool:
+  return "/" in name and "+" not in name
+
+
+def build(results: dict, records: dict, meta: dict) -> dict:
+  """The report dict: per group/controller/setting metrics, pooled settings, the paper's experiments as views."""
+  groups = {}
+  for gname, g in results["groups"].items():
+    env = g.get("env") or {}
+    if not env.get("spec_names"):
+      groups[gname] = dict(g, metrics={})
+      continue
+    dt, names, crit = env["dt"], env["spec_names"], env["critical"]
+    settings = g["settings"]
+    twin = records.get((gname, "no_protection"))
+    af = settings.index("attack_free")
+    gt_all = M.select(twin, twin["setting"] == af) if twin is not None else None
+    t_b = M.baseline_time(gt_all) if gt_all is not None else None
+    per = {}
+    for (gn, cname), rec in records.items():
+      if gn != gname:
+        continue
+      out = {}
+      pools = {}
+      for i, s in enumerate(settings):
+        r = M.select(rec, rec["setting"] == i)
+        tw = M.select(twin, twin["setting"] == i) if twin is not None else None
+        out[s] = M.summarize(r, tw, gt_all, attacked=s != "attack_free", dt=dt, spec_names=names, critical=crit,
+                             t_b=t_b)
+        if _single(s):
+          for key in (f"pooled/{_profile(s)}", "pooled/attacked"):
+            pools.setdefault(key, []).append((r, tw, gt_all))
+      for key, parts in pools.items():
+        r = M.concat([p[0] for p in parts])
+        tw = M.concat([p[1] for p in parts]) if twin is not None else None
+        gt = M.concat([p[2] for p in parts]) if gt_all is not None else None
+        out[key] = M.summarize(r, tw, gt, attacked=True, dt=dt, spec_names=names, critical=crit, t_b=t_b)
+        out[key]["settings"] = len(parts)
+      per[cname] = out
+    groups[gname] = dict(g, metrics=per, t_b=t_b)
+  rep = {"meta": meta, "not_run": results["not_run"], "skipped_experiments": results["skipped_experiments"],
+         "groups": groups, "paper": PAPER}
+  rep["totals"] = {"missions": int(sum(r["missions"] for r in results["rollouts"])),
+                   "rollouts": len(results["rollouts"]),
+                   "compile_s": float(sum(r.get("compile_s", 0.0) for r in results["rollouts"])),
+                   "run_s": float(sum(r.get("run_s", 0.0) for r in results["rollouts"]))}
+  rep["experiments"] = experiments(rep)
+  return rep
+
+
+def _m(rep, group, ctrl, setting, key="svr"):
+  v = rep["groups"].get(group, {}).get("metrics", {}).get(ctrl, {}).get(setting, {})
+  if key in ("svr", "svr_all", "rsr", "md", "collision_rate"):
+    return v.get(key)
+  return v.get(key)
+
+
+def _pct(x):
+  return None if x is None else 100.0 * x
+
+
+def primary_specguard(rep, group="main"):
+  ms = rep["groups"].get(group, {}).get("metrics", {})
+  for c in ("specguard_rc", "specguard_pc"):
+    if c in ms:
+      return c
+  return None
+
+
+def experiments(rep) -> dict:
+  """The paper's experiments as views of the metrics (percentages; None = not run)."""
+  ex = {}
+  main = rep["groups"].get("main", {}).get("metrics", {})
+  ctrls = list(main)
+  profiles = [p for p in ("overt", "stealthy") if any(f"pooled/{p}" in v for v in main.values())]
+  ex["compliance"] = {c: _pct(_m(rep, "main", c, "attack_free", "svr_all")) for c in ctrls}
+  ex["table5"] = {p: {c: _pct(_m(rep, "main", c, f"pooled/{p}")) for c in ("no_protection", "specguard_pc",
+                                                                           "specguard_rc")} for p in profiles}
+  ex["fig9"] = {p: {c: {"svr": _pct(_m(rep, "main", c, f"pooled/{p}")),
+                        "rsr": _pct(_m(rep, "main", c, f"pooled/{p}", "rsr")),
+                        "collision": _pct(_m(rep, "main", c, f"pooled/{p}", "collision_rate"))} for c in ctrls}
+                for p in profiles}
+  sg = primary_specguard(rep)
+  if sg:
+    sens = [s for s in rep["groups"]["main"]["settings"] if _single(s)]
+    ex["fig10"] = {"controller": sg, "per_setting": {s: {"svr": _pct(_m(rep, "main", sg, s)),
+                                                         "md": _m(rep, "main", sg, s, "md")} for s in sens}}
+  ex["ablation"] = {c: {"svr": _pct(_m(rep, "main", c, "pooled/attacked")),
+                        "rsr": _pct(_m(rep, "main", c, "pooled/attacked", "rsr")),
+                        "collision": _pct(_m(rep, "main", c, "pooled/attacked", "collision_rate"))}
+                    for c in ("specguard_rc", "specguard_pc", "delorean", "specguard_no_recon", "specguard_binary")
+                    if c in main}
+  multi = [s for s in rep["groups"].get("main", {}).get("settings", []) if "+" in s]
+  ex["multi"] = {s: {c: {"svr": _pct(_m(rep, "main", c, s)), "rsr": _pct(_m(rep, "main", c, s, "rsr"))}
+                     for c in ctrls} for s in multi}
+  ex["unseen"] = {}
+  for g in ("suburban_to_urban", "urban_to_suburban"):
+    gm = rep["groups"].get(g, {}).get("metrics", {})
+    ex["unseen"][g] = {c: {p: _pct(_m(rep, g, c, f"pooled/{p}")) for p in profiles} for c in gm}
+  gm = rep["groups"].get("rover", {}).get("metrics", {})
+  ex["rover"] = {c: {"svr": _pct(_m(rep, "rover", c, "pooled/attacked")),
+                     "rsr": _pct(_m(rep, "rover", c, "pooled/attacked", "rsr")),
+                     "md": _m(rep, "rover", c, "pooled/attacked", "md")} for c in gm}
+  ex["t2r"] = {c: {p: main[c].get(f"pooled/{p}", {}).get("t2r_stats") for p in profiles} for c in ctrls}
+  ex["detection"] = {c: {p: {"detect": main[c].get(f"pooled/{p}", {}).get("detect_rate", {}).get("value"),
+                             "delay": main[c].get(f"pooled/{p}", {}).get("detection_delay")} for p in profiles}
+                     for c in ctrls}
+  ex["shape"] = shape_statements(ex, sg)
+  return ex
+
+
+def shape_statements(ex, sg) -> list:
+  """Plain sentences comparing SpecGuard with every other controller on pooled SVR and RSR, per profile."""
+  out = []
+  if not sg:
+    return ["No SpecGuard run was evaluated: no comparison."]
+  for p, rows in ex.get("fig9", {}).items():
+    me = rows.get(sg, {})
+    if me.get("svr") is None:
+      continue
+    for c, v in rows.items():
+      if c in (sg, "no_protection") or v.get("svr") is None:
+        continue
+      beats_svr = me["svr"] < v["svr"]
+      beats_rsr = (me["rsr"] or 0) > (v["rsr"] or 0)
+      r_svr = v["svr"] / me["svr"] if me["svr"] > 0 else math.inf
+      r_rsr = me["rsr"] / v["rsr"] if v["rsr"] else math.inf
+      verdict = ("beats" if beats_svr and beats_rsr else "does NOT beat")
+      out.append(f"{p}: {sg} {verdict} {c}: SVR {me['svr']:.1f} % vs {v['svr']:.1f} % ({r_svr:.2f}x lower; "
+                 f"paper ~5x), RSR {me['rsr']:.1f} % vs {v['rsr']:.1f} % ({r_rsr:.2f}x higher; paper ~2x).")
+  return out
+
+
+# ------------------------------------------------------------------------------------------------- markdown
+
+
+def _f(x, nd=1):
+  if x is None:
+    return "n/a"
+  if isinstance(x, str):
+    return x
+  return f"{x:.{nd}f}"
+
+
+def _ci(rate):
+  if not rate or rate.get("value") is None:
+    return "n/a"
+  lo, hi = rate["ci"]
+  return f"{100 * rate['value']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}] (n={rate['n']})"
+
+
+def markdown(rep) -> str:
+  ex, meta, P = rep["experiments"], rep["meta"], PAPER
+  L = ["# SpecGuard evaluation report", "", SIM_LINE, "",
+       f"- command: `{meta['command']}`", f"- date {meta['date']}, backend {meta['backend']} ({meta['device']}), "
+       f"commit {meta.get('git_commit')}",
+       f"- seed {meta['seed']}, {meta['missions_per_setting']} missions per setting and controller, "
+       f"{rep['totals']['missions']} missions in all ({rep['totals']['rollouts']} batched rollouts); wall time "
+       f"{rep.get('wall_s', 0):.1f} s (compile {rep['totals']['compile_s']:.1f} s, flying "
+       f"{rep['totals']['run_s']:.1f} s)",
+       "- SVR = observed / intended violations (intended: the same mission flown with no protection violated a spec "
+       "or crashed); RSR = completed within 5 m of the last waypoint without crash/collision/stall, over missions "
+       "under attack; MD = (T - T_GT) / T_b x 100 over completed missions; definitions in specguard_jax/metrics.py. "
+       "All values in %, 95 % Wilson intervals in report.json.", ""]
+  if rep["not_run"]:
+    L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
+  if rep["skipped_experiments"]:
+    L += ["## Experiments skipped", ""] + [f"- {k}: {v}" for k, v in rep["skipped_experiments"].items()] + [""]
+  L += ["## Attack-free compliance (paper Sec. 6.1: compliance reward 0 % SVR, binary ~25 %)", "",
+        "| controller | SVR ours | paper |", "|---|---|---|"]
+  for c, v in ex["compliance"].items():
+    paper = P["compliance"]["binary"] if c == "specguard_binary" else (0.0 if c.startswith("specguard") else None)
+    L.append(f"| {c} | {_f(v)} | {_f(paper)} |")
+  L += ["", "## Table 5: SVR under overt and stealthy attacks (ours / paper)", "",
+        "| attack | no protection | SpecGuard-PC | SpecGuard-RC |", "|---|---|---|---|"]
+  for p, row in ex["table5"].items():
+    cells = [f"{_f(row[c])} / {_f(P['table5'][p][c])}" for c in ("no_protection", "specguard_pc", "specguard_rc")]
+    L.append(f"| {p} | " + " | ".join(cells) + " |")
+  L += ["", "## Fig. 9: all controllers (pooled over sensors; ours, paper in brackets)", "",
+        "| controller | " + " | ".join(f"{p} SVR | {p} RSR | {p} collisions" for p in ex["fig9"]) + " |",
+        "|---|" + "---|---|---|" * len(ex["fig9"])]
+  ctrls = sorted({c for rows in ex["fig9"].values() for c in rows})
+  for c in ctrls:
+    cells = []
+    for p, rows in ex["fig9"].items():
+      v = rows.get(c, {})
+      pp = P["fig9"].get(p, {}).get(c)
+      cells += [f"{_f(v.get('svr'))} ({_f(pp[0]) if pp else '-'})", f"{_f(v.get('rsr'))} ({_f(pp[1]) if pp else '-'})",
+                _f(v.get("collision"))]
+    L.append(f"| {c} | " + " | ".join(cells) + " |")
+  L += ["", "Shape against the paper:", ""] + [f"- {s}" for s in ex["shape"]] + [""]
+  if "fig10" in ex:
+    L += [f"## Fig. 10: {ex['fig10']['controller']} per attacked sensor (paper: SVR <= 3.33 %, baro 0 %, "
+          f"MD 3.2-6.88 %)", "", "| setting | SVR | MD |", "|---|---|---|"]
+    for s, v in ex["fig10"]["per_setting"].items():
+      L.append(f"| {s} | {_f(v['svr'])} | {_f(v['md'])} |")
+    L.append("")
+  if ex["ablation"]:
+    L += ["## Fig. 12: ablations (all attacks pooled; paper overt: SpecGuard 13.5 / 92.1, without the recovery "
+          "policy (= DeLorean) 60.4 / 45.8, without state reconstruction 67.9 / ~46)", "",
+          "| controller | SVR | RSR | collisions |", "|---|---|---|---|"]
+    for c, v in ex["ablation"].items():
+      L.append(f"| {c} | {_f(v['svr'])} | {_f(v['rsr'])} | {_f(v['collision'])} |")
+    L.append("")
+  if ex["multi"]:
+    L += [f"## Multi-sensor attacks (paper: SpecGuard {P['multi']} % SVR on GPS + gyroscope)", "",
+          "| setting | controller | SVR | RSR |", "|---|---|---|---|"]
+    for s, rows in ex["multi"].items():
+      for c, v in rows.items():
+        L.append(f"| {s} | {c} | {_f(v['svr'])} | {_f(v['rsr'])} |")
+    L.append("")
+  for g, rows in ex["unseen"].items():
+    pp = P["unseen"][g]
+    L += [f"## Unseen worlds: {g} (paper SVR overt {pp[0]} %, stealthy {pp[1]} %)", "",
+          "| controller | " + " | ".join(f"{p} SVR" for p in rep["meta"]["profiles"]) + " |",
+          "|---|" + "---|" * len(rep["meta"]["profiles"])]
+    for c, v in rows.items():
+      L.append(f"| {c} | " + " | ".join(_f(v.get(p)) for p in rep["meta"]["profiles"]) + " |")
+    L.append("")
+  if ex["rover"]:
+    r = P["rover_real"]
+    L += [f"## Rover (paper, real Aion rover: SVR {r['svr']} %, RSR {r['rsr']} %, MD {r['md']} %)", "",
+          "| controller | SVR | RSR | MD |", "|---|---|---|---|"]
+    for c, v in ex["rover"].items():
+      L.append(f"| {c} | {_f(v['svr'])} | {_f(v['rsr'])} | {_f(v['md'])} |")
+    L.append("")
+  L += [f"## Time to recovery and detection ({P['t2r']})", "",
+        "| controller | profile | T2R mean [95 % CI] s | T2R median s | recovered (T2R finite) | detected | "
+        "detection delay s |", "|---|---|---|---|---|---|---|"]
+  main = rep["groups"].get("main", {}).get("metrics", {})
+  for c, rows in main.items():
+    for p in rep["meta"]["profiles"]:
+      v = rows.get(f"pooled/{p}")
+      if not v:
+        continue
+      t = v.get("t2r_stats")
+      d = v.get("detection_delay")
+      L.append(f"| {c} | {p} | {_f(t['mean']) + ' [' + _f(t['ci'][0]) + ', ' + _f(t['ci'][1]) + ']' if t else 'n/a'}"
+               f" | {_f(t['median']) if t else 'n/a'} | {_ci(v.get('t2r_recovered'))} | {_ci(v.get('detect_rate'))}"
+               f" | {_f(d['mean'], 2) if d else 'n/a'} |")
+  L += ["", "## Every setting (main group)", "",
+        "| controller | setting | missions | SVR [CI] | SVR all | RSR [CI] | MD % | collisions | critical |",
+        "|---|---|---|---|---|---|---|---|---|"]
+  for c, rows in main.items():
+    for s, v in rows.items():
+      L.append(f"| {c} | {s} | {v['missions']} | {_ci(v['svr_rate'])} | {_f(_pct(v['svr_all']))} | "
+               f"{_ci(v['rsr_rate'])} | {_f(v['md'])} | {_f(_pct(v['collision_rate']))} | "
+               f"{_f(_pct(v['critical_rate']['value']))} |")
+  L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
+  return "\n".join(L)
+
+
+# ------------------------------------------------------------------------------------------------- figures
+
+
+def _pick_traj(rep, trajs, records, sg, prefer=("gps/overt", "gps/stealthy")):
+  """(setting, traj slot) of a recorded mission under attack: one that no protection violated and SpecGuard did not
+  when there is one."""
+  tn, ts = trajs.get(("main", "no_protection")), trajs.get(("main", sg))
+  if tn is None or ts is None:
+    return None
+  settings = rep["groups"]["main"]["settings"]
+  cands = [s for s in prefer if s in settings] + [s for s in settings if s != "attack_free" and s not in prefer]
+  if not cands:
+    return None
+  vn, vs = M.violation(records[("main", "no_protection")]), M.violation(records[("main", sg)])
+  for s in cands:
+    slots = np.where(tn["setting"] == settings.index(s))[0]
+    for k in slots:
+      row = tn["index"][k]
+      if vn[row] and not vs[row]:
+        return s, int(k)
+  s = cands[0]
+  slots = np.where(tn["setting"] == settings.index(s))[0]
+  return (s, int(slots[0])) if len(slots) else None
+
+
+def make_figures(out_dir: str, rep: dict, records: dict, trajs: dict) -> list:
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+
+  os.makedirs(out_dir, exist_ok=True)
+  written = []
+
+  def save(fig, name):
+    path = os.path.join(out_dir, name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+
+  ex = rep["experiments"]
+  main = rep["groups"].get("main", {}).get("metrics", {})
+  sg = primary_specguard(rep)
+  # comparison bars
+  if ex.get("fig9"):
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    ctrls = sorted({c for rows in ex["fig9"].values() for c in rows})
+    w = 0.8 / max(len(ex["fig9"]), 1)
+    for j, (p, rows) in enumerate(ex["fig9"].items()):
+      for ax, key in zip(axes, ("svr", "rsr")):
+        vals = [rows.get(c, {}).get(key) or 0.0 for c in ctrls]
+        ax.bar(np.arange(len(ctrls)) + j * w, vals, w, label=p)
+    for ax, key in zip(axes, ("SVR %", "RSR %")):
+      ax.set_xticks(np.arange(len(ctrls)) + w / 2, ctrls, rotation=30, ha="right")
+      ax.set_ylabel(key)
+      ax.set_ylim(0, 105)
+      ax.legend()
+    axes[0].set_title("Specification violation rate (lower is better)")
+    axes[1].set_title("Recovery success rate (higher is better)")
+    save(fig, "comparison.png")
+  # per-sensor SVR and MD
+  if ex.get("fig10"):
+    per = ex["fig10"]["per_setting"]
+    names = list(per)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    axes[0].bar(names, [per[s]["svr"] or 0 for s in names])
+    axes[0].set_ylabel("SVR %")
+    axes[1].bar(names, [per[s]["md"] if per[s]["md"] is not None else 0 for s in names])
+    axes[1].set_ylabel("mission delay %")
+    for ax in axes:
+      ax.tick_params(axis="x", rotation=45)
+    axes[0].set_title(f"{ex['fig10']['controller']}: SVR per attacked sensor")
+    axes[1].set_title("MD per attacked sensor")
+    save(fig, "per_sensor.png")
+  # per-spec heat map
+  rows, labels, specs = [], [], None
+  for c, v in main.items():
+    for p in rep["meta"]["profiles"]:
+      s = v.get(f"pooled/{p}")
+      if s and s.get("spec_rate"):
+        specs = list(s["spec_rate"])
+        rows.append([100 * (s["spec_rate"][k] or 0) for k in specs])
+        labels.append(f"{c} ({p})")
+  if rows:
+    fig, ax = plt.subplots(figsize=(1.0 + 0.7 * len(specs), 1.0 + 0.45 * len(rows)))
+    im = ax.imshow(np.asarray(rows), cmap="Reds", vmin=0, vmax=100, aspect="auto")
+    ax.set_xticks(range(len(specs)), specs)
+    ax.set_yticks(range(len(labels)), labels)
+    for i, r in enumerate(rows):
+      for j, x in enumerate(r):
+        ax.text(j, i, f"{x:.0f}", ha="center", va="center", fontsize=7)
+    fig.colorbar(im, ax=ax, label="missions violating the spec %")
+    ax.set_title("Violations per specification")
+    save(fig, "svr_heatmap.png")
+  # T2R CDF
+  fig, ax = plt.subplots(figsize=(6, 4))
+  any_line = False
+  for (g, c), rec in records.items():
+    if g != "main":
+      continue
+    dt = rep["groups"]["main"]["env"]["dt"]
+    for p in rep["meta"]["profiles"]:
+      settings = rep["groups"]["main"]["settings"]
+      ids = [i for i, s in enumerate(settings) if _single(s) and _profile(s) == p]
+      r = M.select(rec, np.isin(rec["setting"], ids))
+      t = M.t2r(r, dt)
+      app = ~np.isnan(t)
+      if not app.any():
+        continue
+      fin = np.sort(t[np.isfinite(t)])
+      y = np.arange(1, len(fin) + 1) / app.sum()
+      ax.step(np.concatenate([[0.0], fin]), np.concatenate([[0.0], y]), where="post", label=f"{c} ({p})")
+      any_line = True
+  ax.set_xlabel("time to recovery after detection (s)")
+  ax.set_ylabel("CDF (unrecovered missions keep it below 1)")
+  ax.set_ylim(0, 1.02)
+  ax.set_title("Time to recovery (T2R)")
+  if any_line:
+    ax.legend(fontsize=7)
+  else:
+    ax.text(0.5, 0.5, "no detected attacks", ha="center", transform=ax.transAxes)
+  save(fig, "t2r_cdf.png")
+  # trajectory and altitude/yaw
+  pick = _pick_traj(rep, trajs, records, sg) if sg else None
+  if pick:
+    s, k = pick
+    tn, ts = trajs[("main", "no_protection")], trajs[("main", sg)]
+    row = tn["index"][k]
+    onset, end = records[("main", "no_protection")]["onset"][row], records[("main", "no_protection")]["attack_end"][row]
+    fig, ax = plt.subplots(figsize=(6.5, 6))
+    wp = tn["waypoints"][k][: int(tn["n_waypoints"][k])]
+    ax.plot(wp[:, 0], wp[:, 1], "k--o", ms=4, lw=0.8, label="mission waypoints")
+    for tr, lab, col in ((tn, "no protection", "tab:red"), (ts, sg, "tab:green")):
+      x = _valid(tr["rows"][:, k])
+      ax.plot(x[:, 0], x[:, 1], color=col, label=f"{lab} (true)")
+      att = (x[:, 11] >= onset) & (x[:, 11] <= end)
+      ax.plot(x[att, 0], x[att, 1], color=col, lw=3, alpha=0.4)
+    x = _valid(tn["rows"][:, k])
+    ax.plot(x[:, 3], x[:, 4], color="tab:red", ls=":", label="no protection (EKF estimate)")
+    ax.set_aspect("equal", "datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"Mission under attack ({s}; thick: attack window)")
+    ax.legend(fontsize=7)
+    save(fig, "trajectory.png")
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=False)
+    yaw_pick = None
+    settings = rep["groups"]["main"]["settings"]
+    for cand in ("gyro/overt", "mag/overt", "gyro/stealthy"):
+      if cand in settings:
+        slots = np.where(tn["setting"] == settings.index(cand))[0]
+        if len(slots):
+          yaw_pick = (cand, int(slots[0]))
+          break
+    panels = [(axes[0], s, k, 8, "altitude (m)")] + ([(axes[1], yaw_pick[0], yaw_pick[1], 6, "yaw (deg)")]
+                                                     if yaw_pick else [(axes[1], s, k, 6, "yaw (deg)")])
+    for ax, sname, kk, col_i, ylab in panels:
+      rr = tn["index"][kk]
+      on, en = records[("main", "no_protection")]["onset"][rr], records[("main", "no_protection")]["attack_end"][rr]
+      for tr, lab, col in ((tn, "no protection", "tab:red"), (ts, sg, "tab:green")):
+        x = _valid(tr["rows"][:, kk])
+        y = np.degrees(np.unwrap(x[:, col_i])) if col_i == 6 else x[:, col_i]
+        ax.plot(x[:, 11], y, color=col, label=lab)
+      ax.axvspan(on, en, color="orange", alpha=0.2, label="attack")
+      ax.set_ylabel(ylab)
+      ax.set_title(sname)
+      ax.legend(fontsize=7)
+    axes[1].set_xlabel("time (s)")
+    save(fig, "altitude_yaw.png")
+  return written
+
+
+def _valid(x):
+  """Trajectory rows up to the end of the episode (time stops increasing once done)."""
+  t = x[:, 11]
+  keep = np.concatenate([[True], np.diff(t) > 0])
+  return x[keep]
+
+
+def write(out_dir: str, rep: dict, records: dict, trajs: dict, figures: bool = True) -> None:
+  """report.json, report.md, records/*.npz and figures/*.png under out_dir."""
+  os.makedirs(os.path.join(out_dir, "records"), exist_ok=True)
+  for (g, c), rec in records.items():
+    np.savez_compressed(os.path.join(out_dir, "records", f"{g}__{c}.npz"), **rec)
+  if figures:
+    rep["figures"] = [os.path.relpath(p, out_dir)
+                      for p in make_figures(os.path.join(out_dir, "figures"), rep, records, trajs)]
+  with open(os.path.join(out_dir, "report.json"), "w") as f:
+    json.dump(jsonable(rep), f, indent=1)
+  with open(os.path.join(out_dir, "report.md"), "w") as f:
+    f.write(markdown(rep))
