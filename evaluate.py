@@ -82,9 +82,9 @@ class Progress:
       return
     el = time.time() - self.t0
     frac = self.done / self.total
-    eta = el / frac * (1 - frac) if frac > 0 else float("nan")
+    eta = f"{el / frac * (1 - frac):5.0f}s" if frac > 0 else "    ?"
     bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
-    sys.stderr.write(f"\r[{bar}] {self.done}/{self.total} {el:6.0f}s eta {eta:5.0f}s  {label[:60]:<60}")
+    sys.stderr.write(f"\r[{bar}] {self.done}/{self.total} {el:6.0f}s eta {eta}  {label[:60]:<60}")
     sys.stderr.flush()
 
   def step(self, label: str) -> None:
@@ -163,7 +163,7 @@ def plan(args) -> dict:
     out = [E.setting(None)]
     out += [E.setting(tuple(s.split("+")), p) for s in sens for p in profiles]
     if multi and "gps" in veh_sensors and "gyro" in veh_sensors:
-      out += [E.setting(("gps", "gyro"), p) for p in profiles if f"gps+gyro" not in sens]
+      out += [E.setting(("gps", "gyro"), p) for p in profiles if "gps+gyro" not in sens]
     return tuple(out)
 
   names = list(_csv(args.controllers)) or (C.available() if args.suite else list(DEFAULT_CONTROLLERS))
@@ -175,11 +175,10 @@ def plan(args) -> dict:
     names.insert(0, "no_protection")   # the twins and ground truth of every metric
   budget = args.train_budget or ("full" if _backend() == "gpu" else "ci")
   out_dir = args.out or (os.path.join(args.run, "eval") if args.run else os.path.join("runs", "eval"))
+  ctx = C.BuildContext(vehicle=vehicle, run_dir=args.run, cache_dir=os.path.join(out_dir, "baselines"),
+                       seed=args.seed, worlds=worlds, train_budget=budget, runs=tuple(sorted(runs.items())))
   groups = {"main": {"vehicle": vehicle, "worlds": worlds, "settings": settings_for(sensors, multi=bool(args.suite)),
-                     "controllers": names,
-                     "ctx": C.BuildContext(vehicle=vehicle, run_dir=args.run, cache_dir=os.path.join(out_dir, "baselines"),
-                                           seed=args.seed, worlds=worlds, train_budget=budget,
-                                           runs=tuple(sorted(runs.items())))}}
+                     "controllers": names, "ctx": ctx}}
   skipped = {}
   if args.suite:
     single = tuple(s for s in sensors if "+" not in s)
@@ -248,6 +247,10 @@ def main(argv=None) -> int:
             raise C.NotAvailable(f"{c[1]} was trained for the {cfg.vehicle}")
       except C.NotAvailable as e:
         results["not_run"][f"{gname}/{label}"] = str(e)
+        bar.step(f"{gname}: {label} not run")
+        continue
+      except Exception as e:  # noqa: BLE001  (a broken builder is reported, the other controllers still run)
+        results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
       env = E.make_env(g["vehicle"], **base, **ctrl.overrides())

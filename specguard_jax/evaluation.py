@@ -206,8 +206,8 @@ def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 
   """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
   argument). Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories
   or None: {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K],
-  'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run). timing (optional dict) gets compile_s and
-  run_s. cache: keep the compiled executable for the next call with the same static configuration (clear_cache()
+  'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
+  timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the same static configuration (clear_cache()
   frees them)."""
   settings = _as_settings(settings)
   static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),

@@ -87,7 +87,8 @@ def wilson(k, n, z: float = Z95) -> tuple:
   den = 1.0 + z * z / n
   c = (p + z * z / (2 * n)) / den
   h = z * math.sqrt(max(p * (1 - p) / n + z * z / (4 * n * n), 0.0)) / den
-  return (max(0.0, c - h), min(1.0, c + h))
+  lo, hi = max(0.0, c - h), min(1.0, c + h)
+  return (0.0 if k == 0 else lo, 1.0 if k == n else hi)   # exact ends (no rounding past p)
 
 
 def mean_ci(x, conf: float = 0.95) -> tuple:

@@ -30,7 +30,7 @@ PAPER = {
     "t2r": "SpecGuard-RC recovers 3x faster than SpecGuard-PC (CDF, Fig. 3b)",
 }
 SIM_LINE = ("Our numbers come from our MJX simulator (specguard-jax: MuJoCo MJX physics, our PX4/ArduPilot-like "
-            "autopilots, sensors, EKF and attacks), not the paper's AirSim/PX4 setup; compare shapes and ratios, not "
+            "autopilots, sensors, EKF and attacks), not AirSim (the paper's AirSim/PX4 setup); compare shapes and ratios, not "
             "absolute values.")
 
 
@@ -270,6 +270,8 @@ def markdown(rep) -> str:
         L.append(f"| {s} | {c} | {_f(v['svr'])} | {_f(v['rsr'])} |")
     L.append("")
   for g, rows in ex["unseen"].items():
+    if not rows:
+      continue
     pp = P["unseen"][g]
     L += [f"## Unseen worlds: {g} (paper SVR overt {pp[0]} %, stealthy {pp[1]} %)", "",
           "| controller | " + " | ".join(f"{p} SVR" for p in rep["meta"]["profiles"]) + " |",
@@ -352,7 +354,7 @@ def make_figures(out_dir: str, rep: dict, records: dict, trajs: dict) -> list:
 
   ex = rep["experiments"]
   main = rep["groups"].get("main", {}).get("metrics", {})
-  sg = primary_specguard(rep)
+  sg = primary_specguard(rep) or next((c for c in main if c != "no_protection"), None)
   # comparison bars
   if ex.get("fig9"):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))

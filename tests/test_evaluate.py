@@ -1,0 +1,102 @@
+"""evaluate.py end to end on the CPU: a tiny real run (2 controllers sharing one compiled rollout x 3 settings x 3
+short missions) writes report.json / report.md / figures with sane values; bad flags are one-line errors (exit 2)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import evaluate as evaluate_cli
+from specguard_jax import controllers as C
+from specguard_jax import evaluation as E
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+MISSIONS = 3
+
+
+def _autopilot_copy(ctx):
+  """The autopilot alone under another name: same env config and policy as no_protection, so it shares the compiled
+  rollout and must reproduce its twin exactly (SVR over intended violations = 100 %, zero mission delay)."""
+  c = C.build("no_protection", ctx)
+  return C.Controller("autopilot_copy", c.env_overrides, c.policy, c.params, "test: the autopilot again")
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+  C.register("autopilot_copy", _autopilot_copy)
+  out = str(tmp_path_factory.mktemp("eval"))
+  rc = evaluate_cli.main(["--controllers", "no_protection,autopilot_copy,specguard_rc", "--sensors", "gps,gyro",
+                          "--profiles", "overt", "--missions", str(MISSIONS), "--mission-s", "30,40", "--max-s", "90",
+                          "--out", out, "--no-progress"])
+  assert rc == 0
+  with open(os.path.join(out, "report.json")) as f:
+    rep = json.load(f)
+  yield out, rep
+  C._REGISTRY.pop("autopilot_copy", None)
+  E.clear_cache()
+
+
+def test_report_files_and_keys(report):
+  out, rep = report
+  for name in ("report.json", "report.md", "records/main__no_protection.npz", "records/main__autopilot_copy.npz"):
+    assert os.path.isfile(os.path.join(out, name)), name
+  for fig in ("comparison.png", "svr_heatmap.png", "t2r_cdf.png"):
+    path = os.path.join(out, "figures", fig)
+    assert os.path.getsize(path) > 5000, fig
+  assert "specguard_rc" in " ".join(rep["not_run"])          # no run given: reported, not crashed
+  g = rep["groups"]["main"]
+  assert g["settings"] == ["attack_free", "gps/overt", "gyro/overt"]
+  for c in ("no_protection", "autopilot_copy"):
+    for s in g["settings"] + ["pooled/overt", "pooled/attacked"]:
+      m = g["metrics"][c][s]
+      for k in ("svr", "svr_all", "rsr", "md", "collision_rate", "missions", "svr_rate", "rsr_rate"):
+        assert k in m, (c, s, k)
+      assert m["missions"] == (MISSIONS if s in g["settings"] else MISSIONS * (2 if s.startswith("pooled") else 1))
+      for k in ("svr_all", "rsr", "collision_rate"):
+        assert 0.0 <= m[k] <= 1.0
+      lo, hi = m["rsr_rate"]["ci"]
+      assert lo <= m["rsr"] <= hi
+  assert rep["totals"]["missions"] == 2 * 3 * MISSIONS and rep["wall_s"] > 0
+  md = open(os.path.join(out, "report.md")).read()
+  assert "not AirSim" in md and "Table 5" in md and "autopilot_copy" in md
+
+
+def test_twin_reproduces_itself(report):
+  """Same missions, same controller: identical records, 100 % of intended violations observed, zero delay."""
+  out, rep = report
+  a = np.load(os.path.join(out, "records/main__no_protection.npz"))
+  b = np.load(os.path.join(out, "records/main__autopilot_copy.npz"))
+  for k in ("violated", "t_end", "final_dist", "complete"):
+    np.testing.assert_array_equal(a[k], b[k])
+  # paired missions: every setting flies missions 0..n-1 with the same plan (attack-free vs attacked twins)
+  assert (a["mission"] == np.tile(np.arange(MISSIONS), 3)).all()
+  assert not a["attacked"][:MISSIONS].any() and a["onset"][MISSIONS:].max() < 40.0
+  ms = rep["groups"]["main"]["metrics"]
+  for s, m in ms["autopilot_copy"].items():
+    if m["attacked"] and m["intended"]:
+      assert m["svr"] == 1.0
+    assert m["md"] == ms["no_protection"][s]["md"] and m["rsr"] == ms["no_protection"][s]["rsr"]
+  assert ms["autopilot_copy"]["attack_free"]["md"] == 0.0   # T_SG = T_GT: its own ground truth
+
+
+def _cli(*args):
+  p = subprocess.run([sys.executable, os.path.join(ROOT, "evaluate.py"), *args], capture_output=True, text=True,
+                     cwd=ROOT, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=120)
+  return p.returncode, p.stderr.strip()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (("--controllers", "nope"), "unknown controller"),
+    (("--sensors", "lidar"), "unknown sensor"),
+    (("--profiles", "loud"), "unknown or no profile"),
+    (("--run", "/nonexistent/run"), "no such directory"),
+    (("--missions", "0"), "--missions must be >= 1"),
+    (("--mission-s", "abc"), "--mission-s takes"),
+    (("--bogus",), "unrecognized arguments"),
+])
+def test_bad_flags_one_line(args, needle):
+  rc, err = _cli(*args)
+  assert rc == 2 and len(err.splitlines()) == 1 and needle in err, err
