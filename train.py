@@ -40,7 +40,8 @@ def parse_args(argv=None):
   ap.add_argument("--out", help="run directory (default runs/<vehicle>_<variant>_s<seed>_<time>)")
   ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
   ap.add_argument("--world", dest="worlds", type=_csv, help="comma-separated world presets to train in")
-  ap.add_argument("--reward", choices=("compliance", "binary"))
+  ap.add_argument("--reward", choices=("compliance", "binary", "survival"),
+                  help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
   ap.add_argument("--action", choices=("gaussian", "discrete"), help="continuous velocity setpoint or the paper's 6")
   ap.add_argument("--no-reconstruction", action="store_true", help="ablation: no state reconstruction in phase 2")
   ap.add_argument("--detector", choices=("residual", "oracle"))

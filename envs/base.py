@@ -47,7 +47,8 @@ OBS_SIZE = 24
 CONTROL_MODES = ("autopilot", "override", "reactive")
 DETECTORS = ("none", "residual", "oracle")
 OVERRIDE_FRAMES = ("world", "body")
-REWARDS = ("compliance", "binary")
+REWARDS = ("compliance", "binary", "survival")  # survival: the FTC baseline's (specguard_jax.baselines.ftc)
+RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +90,12 @@ class EnvConfig:
   override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
   dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
+  # Prior-work baselines (specguard_jax.baselines, docs/BASELINES.md), active while the detector's alarm is up:
+  # 'software_sensors' (SSR: model-predicted readings replace the compromised sensor's before the autopilot's EKF) |
+  # 'dae' (UnRocker: the autopilot flies on the denoising autoencoder's estimate). recovery_model: the file the
+  # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
+  recovery_estimator: str = "none"
+  recovery_model: str = ""
 
   def validate(self):
     for w in (self.world,) + tuple(self.worlds):
@@ -106,6 +113,10 @@ class EnvConfig:
       raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
     if self.reward not in REWARDS:
       raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
+    if self.recovery_estimator not in RECOVERY_ESTIMATORS:
+      raise ValueError(f"unknown recovery_estimator {self.recovery_estimator!r}; choose one of {RECOVERY_ESTIMATORS}")
+    if self.recovery_estimator != "none" and (self.detector == "none" or self.reconstruction):
+      raise ValueError(f"recovery_estimator={self.recovery_estimator!r} needs a detector and reconstruction=False")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
 
@@ -143,6 +154,10 @@ class RAVEnv(Env):
     self.spec_table = config.specs or self._default_specs()
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
+    self.recovery = None
+    if config.recovery_estimator != "none":   # prior-work baseline estimator (specguard_jax.baselines.hooks)
+      from specguard_jax.baselines import hooks as baseline_hooks
+      self.recovery = baseline_hooks.make(self, config.recovery_estimator, config.recovery_model)
     if config.reconstruction:
       n_u = 4 if self.vehicle == "drone" else 2
       self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)
@@ -213,6 +228,8 @@ class RAVEnv(Env):
     if self.config.reconstruction:
       sim["recon"] = recon_lib.recon_init(self.recon_cfg, ekf)
       sim["x_rec"] = recon_lib.input_vector(ekf, readings)
+    if self.recovery is not None:
+      sim["baseline"] = self.recovery.init(ekf, readings)
     signals = self._signals(world, mission, truth, nav)
     episode = {
         "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
@@ -299,6 +316,8 @@ class RAVEnv(Env):
     reward, per_spec = self.reward_fn(signals, normalize=self.config.reward_normalize,
                                       critical_weight=self.config.critical_weight,
                                       binary=self.config.reward == "binary")
+    if self.config.reward == "survival":   # FTC baseline: 1 per step in flight, 0 on the step it crashes
+      reward = rewards_lib.survival_reward(collision | crash | nan)
     reward = jnp.where(finite, reward, 0.0)
     done = (terminated | truncated).astype(jnp.float32)
     metrics = {"collision": collision.astype(jnp.float32), "crash": crash.astype(jnp.float32),
@@ -321,7 +340,10 @@ class RAVEnv(Env):
     k_sense, k_gust = jax.random.split(key)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
     readings = self._attack(readings, sim, attack)
-    ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], readings, cfg.tick_dt)
+    rd_ekf = readings
+    if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
+      sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
+    ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], rd_ekf, cfg.tick_dt)
     if cfg.detector == "residual":   # actuation of the previous tick produced these readings
       sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
                                                         cfg.tick_dt))
@@ -334,6 +356,8 @@ class RAVEnv(Env):
       rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                      u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt)
       sim = dict(sim, recon=rec, x_rec=x_rec)
+    if self.recovery is not None:   # baseline hook (UnRocker): the estimate the navigator and autopilot fly on
+      sim, est = self.recovery.post_ekf(sim, est, readings)
     landed = self._vehicle_landed(sim)
     nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))

@@ -93,8 +93,8 @@ class TrainConfig:
     bad = [w for w in self.worlds if w not in worlds_lib.PRESETS]
     if bad or not self.worlds:
       raise ValueError(f"unknown or no world(s) {bad}; choose from {', '.join(worlds_lib.PRESETS)}")
-    if self.reward not in ("compliance", "binary"):
-      raise ValueError(f"unknown reward {self.reward!r}; choose compliance or binary")
+    if self.reward not in ("compliance", "binary", "survival"):   # survival: the FTC baseline (baselines/ftc.py)
+      raise ValueError(f"unknown reward {self.reward!r}; choose compliance, binary or survival")
     if self.action not in ("gaussian", "discrete"):
       raise ValueError(f"unknown action head {self.action!r}; choose gaussian or discrete")
     if self.detector not in ("residual", "oracle") or self.eval_detector not in ("residual", "oracle"):

@@ -108,3 +108,9 @@ def binary_reward(signals_t: Mapping[str, jnp.ndarray], table: SpecTable, normal
                   critical_weight: float = 1.0) -> Tuple[jnp.ndarray, jnp.ndarray]:
   """Binary baseline (1 satisfied, 0 violated per spec per step): (total [...], per_spec [..., n_specs])."""
   return RewardFn.create(table)(signals_t, normalize, critical_weight, binary=True)
+
+
+def survival_reward(failed) -> jnp.ndarray:
+  """Survival reward of the FTC baseline (specguard_jax.baselines.ftc; no spec terms): 1.0 per step the vehicle
+  flies on, 0.0 on the step it crashes, collides or its physics fails (`failed` [...] bool; the episode ends there)."""
+  return 1.0 - jnp.asarray(failed, jnp.float32)
