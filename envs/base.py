@@ -345,16 +345,20 @@ class RAVEnv(Env):
       sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
     ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], rd_ekf, cfg.tick_dt)
     if cfg.detector == "residual":   # actuation of the previous tick produced these readings
+      hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
       sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
-                                                        cfg.tick_dt))
+                                                        cfg.tick_dt, hold))
     elif cfg.detector == "oracle":
       sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
                                                       cfg.detector_delay))
     est, rd_ctrl = ekf, readings
     if cfg.reconstruction:  # DeLorean: mission logic and autopilot run on the reconstructed state while under attack
       u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
+      handback = sim["recon"].active & ~(sim["det"].alarm > 0)
       rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                      u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt)
+      # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
+      ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)
     if self.recovery is not None:   # baseline hook (UnRocker): the estimate the navigator and autopilot fly on
       sim, est = self.recovery.post_ekf(sim, est, readings)

@@ -326,6 +326,31 @@ def _reset_block(P, idx, var, do):
   return P.at[idx, idx].set(jnp.where(do, var, P[idx, idx]))
 
 
+def _measurement_rows(cfg: EKFConfig, readings: SensorReadings):
+  """Observation rows of one tick (order `_ROWS`): (z [13], noise std [13], gate [13] sigma)."""
+  f32 = jnp.float32
+  z = jnp.concatenate([readings.gps_pos, readings.gps_vel, readings.baro_alt[None], readings.mag_yaw[None],
+                       readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(f32)
+  noise = jnp.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
+                    + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
+                    + [cfg.nhc_noise] * 2, f32)
+  gate = jnp.array([cfg.gps_pos_gate] * 3 + [cfg.gps_vel_gate] * 3 + [cfg.baro_gate, cfg.mag_gate]
+                   + [cfg.flow_gate] * 2 + [cfg.odom_gate] + [cfg.nhc_gate] * 2, f32)
+  return z, noise, gate
+
+
+def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorReadings):
+  """|innovation| / sqrt(H P H' + R) [N_CHANNELS] of every channel's current reading against `state`, without fusing
+  anything (whether or not the channel has a fresh sample): how many sigmas a sensor disagrees with this estimate."""
+  z, noise, _ = _measurement_rows(cfg, readings)
+  pred, H = _linearise(cfg, state)
+  innov = z - pred
+  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  S = jnp.einsum("mi,ij,mj->m", H, state.P, H) + noise ** 2
+  out = jnp.abs(innov) / jnp.sqrt(S)
+  return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
+
+
 def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> EKFState:
   """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets."""
   s = _predict(cfg, state, readings.gyro, readings.accel, dt)
@@ -338,13 +363,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> E
   nhc = (readings.odom_fresh > 0.5) & cfg.use_nhc
   fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
   enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
-  z = jnp.concatenate([readings.gps_pos, readings.gps_vel, readings.baro_alt[None], readings.mag_yaw[None],
-                       readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(f32)
-  noise = jnp.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
-                    + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
-                    + [cfg.nhc_noise] * 2, f32)
-  gate = jnp.array([cfg.gps_pos_gate] * 3 + [cfg.gps_vel_gate] * 3 + [cfg.baro_gate, cfg.mag_gate]
-                   + [cfg.flow_gate] * 2 + [cfg.odom_gate] + [cfg.nhc_gate] * 2, f32)
+  z, noise, gate = _measurement_rows(cfg, readings)
   s, innov, ratio, accept = _fuse(cfg, s, z, noise, gate, enable)
 
   # per-channel records (held while a channel is not fresh)

@@ -55,6 +55,10 @@ def _deps():
 
 
 SENSOR_DEPS = _deps()
+# [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (odometry: none; it cannot be attacked).
+_CHANNEL_MASK = np.zeros((len(ekf_lib.CHANNELS), len(SENSOR_NAMES)), np.float32)
+for _c, _n in enumerate(("gps",) * 6 + ("baro", "mag", "flow", "flow")):
+  _CHANNEL_MASK[_c, SENSOR_NAMES.index(_n)] = 1.0
 """[6, 15] bool: SENSOR_DEPS[s, i] = component i of x'_t derives from sensor s (SENSOR_NAMES order)."""
 
 # Checkpoint entry layout: pos 3, vel 3, acc 3, quat 4, rate 3, gyro_bias 3, accel_bias 3.
@@ -81,6 +85,8 @@ class ReconConfig:
   ekf: Any = None
   model_rate_noise: float = 0.3   # rad/s^2/sqrt(Hz): random walk of the model-rate error (shadow gyro-bias state)
   model_rate_limit: float = 3.0   # rad/s: clamp of that state
+  consistency_sigma: float = 3.0  # a compromised aiding sensor further than this (innovation sigmas) from the shadow
+                                  # estimate is still under attack: `suspect` (holds the recovery switch)
 
   def ekf_cfg(self):
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit)
@@ -90,12 +96,15 @@ class ReconConfig:
 class ReconState:
   """ckpt: CheckpointState.  shadow: EKFState of the shadow filter (meaningful while active).
   rate: [3] model body rate (rad/s).  active: [] bool, reconstruction running (alarm up).
-  since: [] s since the alarm rose (0 while inactive)."""
+  since: [] s since the alarm rose (0 while inactive).  suspect: [] bool, a compromised GPS / baro / magnetometer /
+  optical-flow reading disagrees with the shadow estimate by more than `consistency_sigma` (latest fresh sample;
+  False while inactive): the attack is still on, so the recovery switch must not hand control back yet."""
   ckpt: ck.CheckpointState
   shadow: Any
   rate: jnp.ndarray
   active: jnp.ndarray
   since: jnp.ndarray
+  suspect: jnp.ndarray
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
@@ -120,7 +129,7 @@ def _entry(ekf_state, readings):
 def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
   """Empty checkpoint, inactive; `ekf_state` is a template for the shadow filter (e.g. the env's initial EKF)."""
   return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
-                    active=jnp.zeros((), bool), since=jnp.zeros(()))
+                    active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool))
 
 
 def dependent_components(compromised_mask) -> jax.Array:
@@ -167,12 +176,14 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   Returns (new ReconState, x_reconstructed [15] (INPUT_NAMES), trusted EKFState, trusted SensorReadings): with the
   alarm down x_reconstructed = x'_t measured and the trusted estimate/readings are the inputs; with it up they are
   the shadow filter and the readings it fused (compromised gyro/accel replaced by the model), which a controller can
-  fly on (DeLorean: the autopilot runs on reconstructed states).
+  fly on (DeLorean: the autopilot runs on reconstructed states). On the tick the alarm falls (hand-back) they are
+  still the shadow's, for the caller to re-sync the autopilot's EKF to (envs/base.py does).
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
   x_meas = input_vector(ekf_state, readings)
   rising = alarm & ~state.active
+  falling = state.active & ~alarm   # the recovery switch hands back on this tick
   shadow0, rate0 = _start(cfg, params, state, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
   rate = jnp.where(rising, rate0, state.rate)
@@ -197,14 +208,29 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
   x_shadow = input_vector(shadow, rd)
-  use = alarm & dependent_components(mask)
+  use = (alarm & dependent_components(mask)) | falling
   x_rec = jnp.where(use, x_shadow, x_meas)
 
+  # Is a compromised aiding sensor still far from the shadow estimate (the attack still on)?
+  z = ekf_lib.normalized_innovations(cfg.ekf_cfg(), shadow, readings)
+  fresh = jnp.stack([readings.gps_fresh] * 6 + [readings.baro_fresh, readings.mag_fresh] + [readings.flow_fresh] * 2
+                    + [jnp.zeros(())]) > 0.5
+  sampled = (jnp.asarray(_CHANNEL_MASK) @ mask.astype(jnp.float32) > 0) & fresh
+  bad = jnp.any(sampled & (z > cfg.consistency_sigma))
+  suspect = alarm & jnp.where(jnp.any(sampled), bad, state.suspect)
+
   ckpt = ck.ckpt_update(state.ckpt, _entry(ekf_state, readings), controls, alarm)
-  trusted = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), shadow, ekf_state)
-  trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)
+  # On the hand-back tick the trusted estimate is still the shadow's (the env re-syncs the autopilot's EKF to it,
+  # so the autopilot does not resume on a filter that fused the attack); its gating timers start afresh.
+  on = alarm | falling
+  zero = jnp.zeros(())
+  shadow_out = shadow.replace(gps_pos_age=jnp.where(falling, zero, shadow.gps_pos_age),
+                              gps_vel_age=jnp.where(falling, zero, shadow.gps_vel_age),
+                              hgt_age=jnp.where(falling, zero, shadow.hgt_age))
+  trusted = jax.tree.map(lambda a, b: jnp.where(on, a, b), shadow_out, ekf_state)
+  trusted_rd = jax.tree.map(lambda a, b: jnp.where(on, a, b), rd, readings)
   new = ReconState(ckpt=ckpt, shadow=trusted, rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
-                   since=jnp.where(alarm, state.since + dt, 0.0))
+                   since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect)
   return new, x_rec, trusted, trusted_rd
 
 
