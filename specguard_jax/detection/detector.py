@@ -277,12 +277,13 @@ def diagnose(cfg: DetectorConfig, peak):
   imu_alarm = jnp.max(imu_ev) > cfg.imu_blame
   # Slow IMU biases hide from the IMU-model channels (observer + baseline) and show first in the aiding innovations:
   # a gyro bias turns the attitude, so the heading (mag) AND the velocity (GPS / flow) disagree together; an
-  # accelerometer bias corrupts the predicted velocity before the position (a GPS spoof moves position first).
-  gps_pos, gps_vel = jnp.max(p[0:3]), jnp.max(p[3:6])
+  # accelerometer bias corrupts the predicted vertical velocity before the position, while a GPS spoof moves the
+  # position, or (a ramping spoofer) the horizontal velocity, first.
+  gps_pos, gps_vel_h, gps_vel_z = jnp.max(p[0:3]), jnp.max(p[3:5]), p[5]
   mag, flow = p[_S_CH["mag"]], jnp.max(p[_S_CH["flow"]:_S_CH["flow"] + 2])
   c = cfg.imu_corroborate
-  gyro_like = (mag >= 1.0) & (jnp.maximum(jnp.maximum(gps_pos, gps_vel), flow) >= c)
-  accel_like = (gps_vel >= 1.0) & (gps_pos < 0.5 * c) & (mag < c)
+  gyro_like = (mag >= 1.0) & (jnp.maximum(jnp.maximum(gps_pos, jnp.maximum(gps_vel_h, gps_vel_z)), flow) >= c)
+  accel_like = (gps_vel_z >= 1.0) & (gps_vel_h < c) & (gps_pos < 0.5 * c) & (mag < c)
   return jnp.where(imu_alarm, imu[jnp.argmax(imu_ev)],
                    jnp.where(gyro_like, _S["gyro"],
                              jnp.where(accel_like, _S["accel"], jnp.argmax(ev)))).astype(jnp.int32)
