@@ -5,6 +5,8 @@
   python train.py --resume runs/drone_rc           # continue an interrupted run from its last checkpoint
   python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
   python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
+  python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
+  python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
 
 Writes runs/<name>/ (config.json, metrics.jsonl, tb/, checkpoints/, policy.onnx, policy.msgpack, summary.json) and
 prints where they are.
@@ -51,6 +53,16 @@ def parse_args(argv=None):
   ap.add_argument("--config", help="JSON file of TrainConfig fields")
   ap.add_argument("--sweep", nargs="+", metavar="KEY=V1,V2",
                   help="train every combination of these config values (e.g. seed=0,1 sg.lr=1e-4,3e-4)")
+  ap.add_argument("--sequential-sweep", action="store_true",
+                  help="run sweep members one after another (default: members differing only in seed / "
+                       "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
+  ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
+  ap.add_argument("--env-groups", type=int,
+                  help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
+                       "result on any device count")
+  ap.add_argument("--coordinator", metavar="ADDR:PORT", help="multi-host: process 0's address (jax.distributed)")
+  ap.add_argument("--num-processes", type=int, help="multi-host: number of processes")
+  ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
   ap.add_argument("--no-progress", action="store_true")
   ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
   return ap.parse_args(argv)
@@ -68,7 +80,8 @@ def build_config(a):
   simple = {"vehicle": a.vehicle, "variant": a.variant, "num_envs": a.envs, "unroll_length": a.unroll,
             "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
-            "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps}
+            "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
+            "num_devices": a.devices, "env_groups": a.env_groups}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:
     over["phase1_steps"] = a.steps // 2
@@ -104,10 +117,48 @@ def _sweep_members(cfg, items):
   return members
 
 
+def _sweep(members, out, a):
+  """Members grouped by compiled program (structural keys); each group of several runs as one vmapped program
+  (runner.train_sweep) unless --sequential-sweep. Writes out/sweep.json and out/sweep.md; returns the rows."""
+  from specguard_jax.ppo import distributed, iteration, runner
+  groups = {}
+  for point, mcfg in members:
+    key = iteration.program_config(mcfg) if not a.sequential_sweep else len(groups)
+    groups.setdefault(key, []).append((point, mcfg))
+  rows = []
+  for grp in groups.values():
+    names = ["_".join(f"{k}{v}" for k, v in point.items()).replace("/", "-") for point, _ in grp]
+    if len(grp) > 1:
+      summaries = runner.train_sweep([c for _, c in grp], names, out, progress=not a.no_progress,
+                                     export=not a.no_export)
+    else:
+      summaries = [runner.train(grp[0][1], os.path.join(out, names[0]), progress=not a.no_progress,
+                                export=not a.no_export)]
+    for (point, _), s in zip(grp, summaries):
+      fm = s["final_train_metrics"].get("2") or s["final_train_metrics"].get("1", {})
+      rows.append({**point, "svr": fm.get("svr"), "rsr": fm.get("rsr"), "return": fm.get("return"),
+                   "env_steps": s["env_steps"], "train_wall_s": s["train_wall_s"],
+                   "program_members": s.get("sweep_members", 1), "run_dir": s["run_dir"]})
+  if not distributed.is_main():
+    return rows
+  keys = list(rows[0])
+  fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+  table = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+  table += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
+  with open(os.path.join(out, "sweep.json"), "w") as f:
+    json.dump(rows, f, indent=1)
+  with open(os.path.join(out, "sweep.md"), "w") as f:
+    f.write("\n".join(table) + "\n")
+  print("\n".join(table))
+  print(f"[train] sweep of {len(rows)} runs in {len(groups)} program(s): {os.path.abspath(out)}/sweep.md, sweep.json")
+  return rows
+
+
 def main(argv=None):
   a = parse_args(argv)
-  from specguard_jax.ppo import runner
+  from specguard_jax.ppo import distributed, runner
   try:
+    distributed.initialize(a.coordinator, a.num_processes, a.process_id)
     if a.resume:
       cfg = runner.load_run_config(a.resume)
       out = a.resume
@@ -121,29 +172,18 @@ def main(argv=None):
   except ValueError as e:
     print(f"train.py: error: {e}", file=sys.stderr)
     return 2
-  if members:
-    rows = []
-    for i, (point, mcfg) in enumerate(members):
-      name = "_".join(f"{k}{v}" for k, v in point.items()).replace("/", "-")
-      s = runner.train(mcfg, os.path.join(out, name), progress=not a.no_progress, export=not a.no_export)
-      fm = s["final_train_metrics"].get("2") or s["final_train_metrics"].get("1", {})
-      rows.append({**point, "svr": fm.get("svr"), "rsr": fm.get("rsr"), "return": fm.get("return"),
-                   "env_steps": s["env_steps"], "train_wall_s": s["train_wall_s"], "run_dir": s["run_dir"]})
-    with open(os.path.join(out, "sweep.json"), "w") as f:
-      json.dump(rows, f, indent=1)
-    keys = list(rows[0])
-    print(" | ".join(keys))
-    for r in rows:
-      print(" | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in keys))
-    print(f"[train] sweep of {len(rows)} runs: {os.path.abspath(out)}/sweep.json")
-    return 0
   try:
+    if members:
+      _sweep(members, out, a)
+      return 0
     s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export)
   except ValueError as e:
     print(f"\ntrain.py: error: {e}", file=sys.stderr)
     return 2
   if s.get("interrupted"):
     return 130
+  if not distributed.is_main():
+    return 0
   print(f"[train] done: {s['env_steps']:,} env steps in {s['train_wall_s']:.0f} s of training calls")
   print(f"[train] run directory: {s['run_dir']}")
   for name in ("policy.onnx", "summary.json", "metrics.jsonl", "checkpoints", "tb"):

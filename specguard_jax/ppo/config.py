@@ -83,6 +83,8 @@ class TrainConfig:
   eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
+  num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
+  env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
 
   def validate(self):
     from envs import worlds as worlds_lib
@@ -102,6 +104,10 @@ class TrainConfig:
     bad = [s for s in self.attack_sensors if s not in SENSOR_NAMES]
     if bad or not self.attack_sensors:
       raise ValueError(f"unknown or no attack sensor(s) {bad}; choose from {', '.join(SENSOR_NAMES)}")
+    if self.num_devices < 0 or self.env_groups < 0:
+      raise ValueError("num_devices and env_groups must be >= 0 (0 = one per device / all devices)")
+    if self.env_groups and self.num_envs % self.env_groups:
+      raise ValueError(f"num_envs ({self.num_envs}) must be divisible by env_groups ({self.env_groups})")
     for name in ("num_envs", "unroll_length", "iters_per_call", "alternate_iters", "converge_window"):
       if getattr(self, name) < 1:
         raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

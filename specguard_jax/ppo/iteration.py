@@ -28,8 +28,8 @@ import envs as envs_lib
 from envs.wrappers import AutoReset
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ppo import attacker as attacker_lib
-from specguard_jax.ppo import losses, networks
-from specguard_jax.ppo.config import TrainConfig
+from specguard_jax.ppo import distributed, losses, networks
+from specguard_jax.ppo.config import PPOConfig, TrainConfig
 
 @struct.dataclass
 class Carry:
@@ -37,8 +37,8 @@ class Carry:
   sg: losses.AgentState
   aa: losses.AgentState
   env_state: State
-  ep_return: jnp.ndarray      # [B] SG return of the running episodes
-  ep_return_aa: jnp.ndarray   # [B]
+  ep_return: jnp.ndarray      # [G, B/G] SG return of the running episodes (G env groups, ppo/distributed.py)
+  ep_return_aa: jnp.ndarray   # [G, B/G]
   rng: jnp.ndarray
   iteration: jnp.ndarray      # [] int32 iterations done in this phase
 
@@ -82,7 +82,7 @@ def make_agents(cfg: TrainConfig):
 @dataclasses.dataclass
 class Phase:
   """A phase's env and compiled entry points: init(key, sg_state, aa_state) -> Carry; run(carry) -> (carry,
-  metrics [K])."""
+  metrics [K]). The carry's env state is [G, B/G, ...] (`groups` = G), sharded over `mesh` along G."""
   cfg: TrainConfig
   number: int
   env: Any
@@ -92,11 +92,50 @@ class Phase:
   init: Any
   run: Any
   iterations: int
+  mesh: Any = None
+  groups: int = 1
+
+
+def program_config(cfg: TrainConfig) -> TrainConfig:
+  """cfg without what is data in the compiled program (seed, the agents' losses.HPARAMS, host-side knobs), so runs
+  and sweep members that differ only there share one compiled phase. The runner sets those values in the carry."""
+  d = PPOConfig()
+  clear = lambda p: dataclasses.replace(p, **{k: getattr(d, k) for k in losses.HPARAMS})  # noqa: E731
+  return dataclasses.replace(cfg, seed=0, sg=clear(cfg.sg), aa=clear(cfg.aa), eval_missions=0,
+                             checkpoint_every_s=0.0, converge_eps=0.0)
+
+
+def make_phase(cfg: TrainConfig, phase: int, mesh=None, members: int = 0) -> Phase:
+  """The phase's env and compiled functions, cached per program_config(cfg) and mesh (a resumed run or another seed
+  in the same process reuses them); `Phase.cfg` is that program config, and the agents' `init` gives default
+  hyperparameters (set the run's with losses.with_hparams). mesh: the 1-D 'data' device mesh (default:
+  distributed.make_mesh(cfg.num_devices)); the env groups are sharded over it, agents replicated
+  (ppo/distributed.py). members > 0: a sweep phase: init and run are vmapped over a leading member axis, which is
+  the one sharded over the mesh (each member's envs stay on one device)."""
+  mesh = mesh if mesh is not None else distributed.make_mesh(cfg.num_devices)
+  return _make_phase(program_config(cfg), phase, mesh, members)
 
 
 @functools.lru_cache(maxsize=8)
-def make_phase(cfg: TrainConfig, phase: int) -> Phase:
-  """The phase's env and compiled functions (cached per config: a resumed run in the same process reuses them)."""
+def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
+  if members:
+    if members % mesh.size:
+      raise ValueError(f"sweep members ({members}) must be divisible by the device count ({mesh.size})")
+    G = cfg.env_groups or 1
+    if cfg.num_envs % G:
+      raise ValueError(f"num_envs ({cfg.num_envs}) must be divisible by env_groups ({G})")
+  else:
+    G = distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh)
+  Bg = cfg.num_envs // G
+  for name, p in (("sg", cfg.sg), ("aa", cfg.aa)):
+    if (Bg * cfg.unroll_length) % p.num_minibatches:
+      raise ValueError(f"num_envs / env_groups * unroll_length ({Bg * cfg.unroll_length}) must be divisible by "
+                       f"{name}.num_minibatches ({p.num_minibatches})")
+  if members:   # the member axis is the sharded one (outside); nothing inside a member is constrained
+    shard = rep = lambda t: t  # noqa: E731
+  else:
+    shard = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
+    rep = functools.partial(distributed.constrain, sharding=distributed.replicated(mesh))
   env = make_env(cfg, phase)
   batched = AutoReset(VmapWrapper(env))
   sg, aa = make_agents(cfg)
@@ -108,17 +147,21 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
   rc = adversarial and cfg.variant == "rc"
   B = cfg.num_envs
 
+  reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
+  step = jax.vmap(batched.step)
+
   def init(key, sg_state, aa_state) -> Carry:
     k_env, k_run = jax.random.split(key)
-    state = batched.reset(jax.random.split(k_env, B))
-    return Carry(sg=sg_state, aa=aa_state, env_state=state, ep_return=jnp.zeros(B), ep_return_aa=jnp.zeros(B),
-                 rng=k_run, iteration=jnp.zeros((), jnp.int32))
+    keys = jax.random.split(k_env, B)
+    state = shard(reset(keys.reshape((G, Bg) + keys.shape[1:])))
+    return Carry(sg=rep(sg_state), aa=rep(aa_state), env_state=state, ep_return=shard(jnp.zeros((G, Bg))),
+                 ep_return_aa=shard(jnp.zeros((G, Bg))), rng=rep(k_run), iteration=jnp.zeros((), jnp.int32))
 
   def aa_obs(state, setpoint):
     info = state.info
     keys = ("adv", "time", "mission") + (("alarm",) if "alarm" in info else ())
     light = state.replace(info={k: info[k] for k in keys}, pipeline_state=None, metrics={})
-    return jax.vmap(env.observe)(light, setpoint)
+    return jax.vmap(jax.vmap(env.observe))(light, setpoint)
 
   def act_step(c, key):
     sg_s, aa_s, state, ep_ret, ep_ret_aa = c
@@ -134,9 +177,10 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
     if adversarial:
       o_aa = aa_obs(state, setpoint)
       a_aa, logp_aa, v_aa = aa.act(aa_s, o_aa, k2)
-      nxt = batched.step(state, jnp.concatenate([setpoint, a_aa], axis=-1))
+      nxt = step(state, jnp.concatenate([setpoint, a_aa], axis=-1))
     else:
-      nxt = batched.step(state, setpoint)
+      nxt = step(state, setpoint)
+    nxt = shard(nxt)
     info = nxt.info
     done = nxt.done
     trunc = info["truncation"]
@@ -171,9 +215,13 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
     return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa), (out, stats)
 
   def advantages(tr, p):
+    """GAE over [T, G, B/G], then [T, G, B/G, ...] -> [T, B, ...] for losses.update (which splits B into G)."""
     adv, target = losses.gae(tr["reward"], tr["value"], tr["next_value"], tr["terminated"], tr["done"],
                              p.gamma, p.gae_lambda)
-    return dict(tr, adv=adv, target=target)
+    return jax.tree.map(lambda a: a.reshape((a.shape[0], B) + a.shape[3:]), dict(tr, adv=adv, target=target))
+
+  def upd(agent, state, batch, key):
+    return losses.update(agent, state, batch, key, groups=G, constrain=shard)
 
   def one_iteration(carry: Carry, _):
     rng, k_roll, k_sg, k_aa = jax.random.split(carry.rng, 4)
@@ -182,31 +230,37 @@ def make_phase(cfg: TrainConfig, phase: int) -> Phase:
         act_step, init_c, jax.random.split(k_roll, cfg.unroll_length))
     stats = jax.tree.map(jnp.sum, stats)
     sg_batch = advantages(tr["sg"], cfg.sg)
-    sg_shape = jax.eval_shape(lambda: losses.update(sg, carry.sg, sg_batch, k_sg)[1])
+    sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])
     zeros = lambda shape: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
     if adversarial:
       turn = (carry.iteration // cfg.alternate_iters) % 2
       aa_batch = advantages(tr["aa"], cfg.aa)
-      aa_shape = jax.eval_shape(lambda: losses.update(aa, carry.aa, aa_batch, k_aa)[1])
-      sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: losses.update(sg, carry.sg, sg_batch, k_sg),
+      aa_shape = jax.eval_shape(lambda: upd(aa, carry.aa, aa_batch, k_aa)[1])
+      sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: upd(sg, carry.sg, sg_batch, k_sg),
                                     lambda: (carry.sg, zeros(sg_shape)))
-      aa_new, aa_aux = jax.lax.cond(turn == 1, lambda: losses.update(aa, carry.aa, aa_batch, k_aa),
+      aa_new, aa_aux = jax.lax.cond(turn == 1, lambda: upd(aa, carry.aa, aa_batch, k_aa),
                                     lambda: (carry.aa, zeros(aa_shape)))
     else:
       turn = jnp.zeros((), jnp.int32)
-      sg_new, sg_aux = losses.update(sg, carry.sg, sg_batch, k_sg)
+      sg_new, sg_aux = upd(sg, carry.sg, sg_batch, k_sg)
       aa_new, aa_aux = carry.aa, {}
     metrics = dict(stats, turn=turn, **{f"sg_{k}": v for k, v in sg_aux.items()},
                    **{f"aa_{k}": v for k, v in aa_aux.items()})
-    new = Carry(sg=sg_new, aa=aa_new, env_state=state, ep_return=ep_ret, ep_return_aa=ep_ret_aa, rng=rng,
-                iteration=carry.iteration + 1)
+    new = Carry(sg=rep(sg_new), aa=rep(aa_new), env_state=shard(state), ep_return=shard(ep_ret),
+                ep_return_aa=shard(ep_ret_aa), rng=rep(rng), iteration=carry.iteration + 1)
     return new, metrics
 
   def run(carry: Carry):
     return jax.lax.scan(one_iteration, carry, None, length=cfg.iters_per_call)
 
-  return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=jax.jit(init),
-               run=jax.jit(run, donate_argnums=0), iterations=_iterations(cfg, phase))
+  if members:
+    msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
+    init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
+    run_fn = jax.jit(lambda c: msh(jax.vmap(run)(msh(c))), donate_argnums=0)
+  else:
+    init_fn, run_fn = jax.jit(init), jax.jit(run, donate_argnums=0)
+  return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=init_fn, run=run_fn,
+               iterations=_iterations(cfg, phase), mesh=mesh, groups=G)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -57,16 +57,36 @@ class Agent:
     return self.value.apply({"params": state.params["value"]}, x)[..., 0]
 
 
+HPARAMS = ("lr", "ent_coef", "clip_eps", "vf_coef")
+"""PPO hyperparameters kept as data in the optimizer state (optax.inject_hyperparams), so a sweep over them is one
+vmapped program (train.py --sweep): opt_state.hyperparams[name] is a float32 scalar per agent."""
+
+
+def _adam(lr, frac, ent_coef, clip_eps, vf_coef, max_grad_norm):
+  del ent_coef, clip_eps, vf_coef   # carried for ppo_loss, not used by the optimizer
+  return optax.chain(optax.clip_by_global_norm(max_grad_norm), optax.adam(lr * frac, eps=1e-5))
+
+
 def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig, total_updates: int,
                obs_clip: float = 10.0) -> Agent:
-  """Agent with Adam (global-norm gradient clipping, constant or linearly decaying step size)."""
-  if ppo.lr_schedule == "linear":
-    lr = optax.linear_schedule(ppo.lr, ppo.lr * ppo.lr_end_frac, max(1, total_updates))
-  else:
-    lr = ppo.lr
-  opt = optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm), optax.adam(lr, eps=1e-5))
+  """Agent with Adam (global-norm gradient clipping, constant or linearly decaying step size); lr, ent_coef,
+  clip_eps and vf_coef are data in the optimizer state (see HPARAMS)."""
+  frac = (optax.linear_schedule(1.0, ppo.lr_end_frac, max(1, total_updates)) if ppo.lr_schedule == "linear"
+          else 1.0)
+  opt = optax.inject_hyperparams(_adam, static_args=("max_grad_norm",))(
+      lr=ppo.lr, frac=frac, ent_coef=ppo.ent_coef, clip_eps=ppo.clip_eps, vf_coef=ppo.vf_coef,
+      max_grad_norm=ppo.max_grad_norm)
   return Agent(policy=policy, value=networks.value_module(value_hidden, activation), optimizer=opt, ppo=ppo,
                obs_clip=obs_clip)
+
+
+def with_hparams(state: AgentState, ppo: PPOConfig) -> AgentState:
+  """The agent state with its data hyperparameters (HPARAMS) set from `ppo` (float32 scalars, or any leading
+  member axis the state has)."""
+  hp = dict(state.opt_state.hyperparams)
+  for k in HPARAMS:
+    hp[k] = jnp.full(hp[k].shape, getattr(ppo, k), hp[k].dtype)
+  return state.replace(opt_state=state.opt_state._replace(hyperparams=hp))
 
 
 def gae(rewards, values, next_values, terminated, done, gamma: float, lam: float):
@@ -87,9 +107,11 @@ def gae(rewards, values, next_values, terminated, done, gamma: float, lam: float
   return adv, adv + values
 
 
-def ppo_loss(agent: Agent, params, normalizer, batch):
-  """Clipped PPO loss on a minibatch dict (obs, action, logp, value, adv, target, mask [N]). Returns (loss, aux)."""
+def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
+  """Clipped PPO loss on a minibatch dict (obs, action, logp, value, adv, target, mask [..]). hp: {clip_eps,
+  ent_coef, vf_coef} as data (default: the agent's PPOConfig). Returns (loss, aux)."""
   p = agent.ppo
+  hp = hp or {"clip_eps": p.clip_eps, "ent_coef": p.ent_coef, "vf_coef": p.vf_coef}
   x = jnp.clip(running_statistics.normalize(batch["obs"], normalizer), -agent.obs_clip, agent.obs_clip)
   logp, ent = agent.policy.log_prob_entropy(params["policy"], x, batch["action"])
   v = agent.value.apply({"params": params["value"]}, x)[..., 0]
@@ -101,7 +123,7 @@ def ppo_loss(agent: Agent, params, normalizer, batch):
     sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8
     adv = (adv - mu) / sd
   ratio = jnp.exp(logp - batch["logp"])
-  surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - p.clip_eps, 1.0 + p.clip_eps) * adv)
+  surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp["clip_eps"], 1.0 + hp["clip_eps"]) * adv)
   pg_loss = -jnp.sum(surr * mask) / n
   v_err = (v - batch["target"]) ** 2
   if p.value_clip_eps > 0:
@@ -109,26 +131,35 @@ def ppo_loss(agent: Agent, params, normalizer, batch):
     v_err = jnp.maximum(v_err, (v_clip - batch["target"]) ** 2)
   v_loss = 0.5 * jnp.mean(v_err)
   entropy = jnp.sum(ent * mask) / n
-  loss = pg_loss + p.vf_coef * v_loss - p.ent_coef * entropy
+  loss = pg_loss + hp["vf_coef"] * v_loss - hp["ent_coef"] * entropy
   approx_kl = jnp.sum(((ratio - 1.0) - (logp - batch["logp"])) * mask) / n
   return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": approx_kl}
 
 
-def update(agent: Agent, state: AgentState, batch, key):
+def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constrain=None):
   """Normaliser update on the batch's observations, then epochs x minibatches of Adam on the PPO loss.
 
-  batch: dict of [T, B, ...] arrays (see ppo_loss). A non-finite gradient step is skipped (params unchanged) and
-  counted in aux['nan_skips'], so NaNs never reach the parameters.
+  batch: dict of [T, B, ...] arrays (see ppo_loss). groups: G env groups (B = G x B/G, the groups axis is the one
+  sharded over devices, ppo/distributed.py): each epoch shuffles inside each group and every minibatch takes the
+  same number of samples from each group, so the shuffle never crosses devices; G = 1 is a plain global shuffle.
+  constrain: optional fn applied to [G, ...] arrays (a sharding constraint). A non-finite gradient step is skipped
+  (params unchanged) and counted in aux['nan_skips'], so NaNs never reach the parameters.
   """
   p = agent.ppo
-  flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), batch)
-  n = flat["mask"].shape[0]
+  constrain = constrain or (lambda t: t)
+  T, B = batch["mask"].shape[:2]
+  # [T, B, ...] -> [G, T * B/G, ...] (time-major inside a group)
+  flat = jax.tree.map(lambda a: jnp.swapaxes(a.reshape((T, groups, B // groups) + a.shape[2:]), 0, 1).reshape(
+      (groups, T * (B // groups)) + a.shape[2:]), batch)
+  flat = constrain(flat)
+  n = T * (B // groups)
   normalizer = running_statistics.update(state.normalizer, flat["obs"])
+  hp = {k: state.opt_state.hyperparams[k] for k in ("clip_eps", "ent_coef", "vf_coef")}
   grad_fn = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
 
   def minibatch(carry, mb):
     params, opt_state, skips = carry
-    (loss, aux), g = grad_fn(agent, params, normalizer, mb)
+    (loss, aux), g = grad_fn(agent, params, normalizer, constrain(mb), hp)
     upd, new_opt = agent.optimizer.update(g, opt_state, params)
     new_params = optax.apply_updates(params, upd)
     ok = jnp.isfinite(loss) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(g)]))
@@ -137,8 +168,11 @@ def update(agent: Agent, state: AgentState, batch, key):
     return (params, opt_state, skips + (~ok).astype(jnp.int32)), dict(aux, loss=loss)
 
   def epoch(carry, k):
-    perm = jax.random.permutation(k, n)
-    mbs = jax.tree.map(lambda a: a[perm].reshape((p.num_minibatches, -1) + a.shape[1:]), flat)
+    keys = jax.random.split(k, groups) if groups > 1 else k[None]
+    perm = constrain(jax.vmap(lambda kg: jax.random.permutation(kg, n))(keys))     # [G, n]
+    # [G, n, ...] -> [M, G, n / M, ...]: minibatch m takes the same slice of every group's permutation
+    mbs = jax.tree.map(lambda a: jnp.swapaxes(jax.vmap(lambda x, i: x[i])(a, perm).reshape(
+        (groups, p.num_minibatches, -1) + a.shape[2:]), 0, 1), flat)
     return jax.lax.scan(minibatch, carry, mbs)
 
   init = (state.params, state.opt_state, jnp.zeros((), jnp.int32))

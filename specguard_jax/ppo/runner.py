@@ -21,11 +21,14 @@ import signal
 import sys
 import time
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from specguard_jax.ppo import attacker as attacker_lib
+from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
 from specguard_jax.ppo.config import TrainConfig, from_dict
 
@@ -114,6 +117,17 @@ def _pack(carry) -> dict:
   return {str(i): x for i, x in enumerate(jax.tree.leaves(carry)) if x.size}
 
 
+def abstract_carry(phase, key, sg_state, aa_state):
+  """The phase's carry as ShapeDtypeStructs with their shardings (env groups split over the mesh, the rest
+  replicated): the target Orbax restores a checkpoint onto."""
+  shapes = jax.eval_shape(phase.init, key, sg_state, aa_state)
+  data, rep = distributed.data_sharding(phase.mesh), distributed.replicated(phase.mesh)
+  split = {"env_state", "ep_return", "ep_return_aa"}
+  return type(shapes)(**{f.name: jax.tree.map(
+      lambda x, sh=(data if f.name in split else rep): jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
+      getattr(shapes, f.name)) for f in dataclasses.fields(shapes)})
+
+
 def _unpack(abstract, packed: dict):
   leaves, tree = jax.tree.flatten(abstract)
   out = [packed[str(i)] if str(i) in packed else jnp.zeros(a.shape, a.dtype) for i, a in enumerate(leaves)]
@@ -166,16 +180,24 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   resume: continue from run_dir's newest checkpoint (its config.json wins over `cfg`).  stop_after_calls: stop
   (after checkpointing) once this many compiled calls ran in this process: a deterministic stand-in for a kill.
   """
+  main = distributed.is_main()
   os.makedirs(run_dir, exist_ok=True)
   if resume:
     cfg = load_run_config(run_dir)
   else:
     cfg.validate()
+  mesh = distributed.make_mesh(cfg.num_devices)
+  # The env-group count fixes the program (and the checkpoint's shapes): resolve it once and keep it in config.json,
+  # so a resume on another device count (dividing it) continues the same run.
+  cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh))
+  if not resume and main:
     with open(os.path.join(run_dir, "config.json"), "w") as f:
       json.dump(cfg.to_dict(), f, indent=1)
+  if not main:
+    log = lambda *a, **k: None  # noqa: E731 - only process 0 talks
   mgr = _checkpointer(run_dir)
-  logger = _Logger(run_dir)
-  bar = _Progress(progress)
+  logger = _Logger(run_dir) if main else None
+  bar = _Progress(progress and main)
   phases = [p for p, n in ((1, cfg.phase1_steps), (2, cfg.phase2_steps)) if n > 0]
   key = jax.random.PRNGKey(cfg.seed)
   k_sg, k_aa, k_phase = jax.random.split(key, 3)
@@ -201,12 +223,14 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   try:
     while host["phase_index"] < len(phases) and not host["done"]:
       number = phases[host["phase_index"]]
-      phase = it.make_phase(cfg, number)
+      phase = it.make_phase(cfg, number, mesh)
       if sg_state is None:
-        sg_state = phase.sg.init(k_sg, phase.env.observation_size if number == 1 else phase.env.env.observation_size)
-        aa_state = phase.aa.init(k_aa, attacker_lib.N_OBS)
-      t0 = time.time()
-      fresh = phase.init(jax.random.fold_in(k_phase, number), sg_state, aa_state)
+        sg_state = losses.with_hparams(phase.sg.init(k_sg, phase.env.observation_size if number == 1 else
+                                                     phase.env.env.observation_size), cfg.sg)
+        aa_state = losses.with_hparams(phase.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa)
+      sg_state, aa_state, k_init = distributed.replicate((sg_state, aa_state, jax.random.fold_in(k_phase, number)),
+                                                         mesh)
+      fresh = phase.init(k_init, sg_state, aa_state)
       if ckpt_step is not None and saved_host is not None:
         carry = _restore_carry(mgr, ckpt_step, fresh)
         del fresh
@@ -238,7 +262,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
           rec = {"phase": number, "iteration": it_end - cfg.iters_per_call + i + 1, "env_steps": host["env_steps"],
                  "sps": sps, "first_call": first, **d,
                  **{k: v for k, v in mi.items() if k.startswith(("sg_", "aa_")) or k in ("turn", "episodes")}}
-          logger.log(rec)
+          if logger is not None:
+            logger.log(rec)
           if number == 2:
             host["history"].append([d["return"], d["return_aa"]])
             host["history"] = host["history"][-2 * cfg.converge_window:]
@@ -265,18 +290,22 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     # ---- finished (or restored a finished run) ----
     if sg_state is None:  # resumed after the last phase: restore the final carry
       number = phases[-1]
-      phase = it.make_phase(cfg, number)
+      phase = it.make_phase(cfg, number, mesh)
       sg0 = phase.sg.init(k_sg, 24)
       aa0 = phase.aa.init(k_aa, attacker_lib.N_OBS)
-      fresh = jax.eval_shape(lambda: phase.init(jax.random.fold_in(k_phase, number), sg0, aa0))
+      fresh = abstract_carry(phase, jax.random.fold_in(k_phase, number), sg0, aa0)
       carry = _restore_carry(mgr, mgr.latest_step(), fresh)
       sg_state, aa_state = carry.sg, carry.aa
     host["done"] = True
+    sg_state = distributed.to_host(sg_state)   # export and held-out evaluation run on process 0's devices
     summary = {"run_dir": os.path.abspath(run_dir), "config": cfg.to_dict(), "env_steps": host["env_steps"],
                "train_wall_s": host["wall_s"], "compile_s": host["compile_s"], "converged": host["converged"],
                "final_train_metrics": {str(k): v for k, v in summary_phase.items()},
                "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
+               "devices": mesh.size, "processes": jax.process_count(), "env_groups": cfg.env_groups,
                "date": time.strftime("%Y-%m-%d")}
+    if not main:
+      return summary
     if export:
       summary["export"] = export_policy(cfg, run_dir, sg_state)
     if cfg.eval_missions > 0:
@@ -291,7 +320,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   finally:
     for s, h in old_handlers.items():
       signal.signal(s, h)
-    logger.close()
+    if logger is not None:
+      logger.close()
     mgr.close()
 
 
@@ -317,3 +347,108 @@ def default_sizes(backend: str) -> dict:
   return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
               eval_missions=16)
 
+
+
+SWEEP_DATA_KEYS = ("seed",) + tuple(f"{a}.{h}" for a in ("sg", "aa") for h in losses.HPARAMS)
+"""Sweep keys that are data in one vmapped program (train_sweep); any other key is structural (its own program)."""
+
+
+def _member_states(phase, cfgs, number, k_keys):
+  """Per-member (SG state, AA state, phase init key), stacked on a leading member axis."""
+  out = []
+  for c, (k_sg, k_aa, k_phase) in zip(cfgs, k_keys):
+    n_obs = phase.env.observation_size if number == 1 else phase.env.env.observation_size
+    out.append((losses.with_hparams(phase.sg.init(k_sg, n_obs), c.sg),
+                losses.with_hparams(phase.aa.init(k_aa, attacker_lib.N_OBS), c.aa),
+                jax.random.fold_in(k_phase, number)))
+  return jax.tree.map(lambda *x: np.stack([np.asarray(v) for v in x]), *out)
+
+
+def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, export: bool = True,
+                log=print) -> list:
+  """Train sweep members that differ only in SWEEP_DATA_KEYS as ONE compiled program per phase: the carry gets a
+  leading member axis (vmapped), sharded over the devices (the largest device count dividing the member count);
+  each member's hyperparameters live in its optimizer state (losses.HPARAMS), its seed in its keys. Each member
+  gets out/<name>/ (config.json, metrics.jsonl, summary.json, policy export, held-out evaluation if asked); no
+  checkpoints (a sweep restarts from scratch) and no early convergence stop (members run the full budget).
+  Returns one summary per member."""
+  import math as _math
+  base = it.program_config(cfgs[0])
+  for c in cfgs:
+    c.validate()
+    if it.program_config(c) != base:
+      raise ValueError("train_sweep members may differ only in " + ", ".join(SWEEP_DATA_KEYS))
+  S = len(cfgs)
+  avail = cfgs[0].num_devices or len(jax.devices())
+  mesh = distributed.make_mesh(_math.gcd(S, avail))
+  main = distributed.is_main()
+  dirs = [os.path.join(out, n) for n in names]
+  loggers = []
+  for c, d in zip(cfgs, dirs):
+    os.makedirs(d, exist_ok=True)
+    if main:
+      with open(os.path.join(d, "config.json"), "w") as f:
+        json.dump(c.to_dict(), f, indent=1)
+      loggers.append(_Logger(d))
+  bar = _Progress(progress and main)
+  keys = [jax.random.split(jax.random.PRNGKey(c.seed), 3) for c in cfgs]
+  msh = distributed.data_sharding(mesh)
+  put = lambda t: jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, msh, lambda i: x[i]), t)  # noqa: E731
+  phases = [p for p, n in ((1, base.phase1_steps), (2, base.phase2_steps)) if n > 0]
+  env_steps, wall, compile_s, last, per_phase = 0, 0.0, {}, [{} for _ in cfgs], [{} for _ in cfgs]
+  sg_state = aa_state = None
+  log(f"[train] sweep of {S} members as one program per phase on {mesh.size} device(s)")
+  try:
+    for number in phases:
+      phase = it.make_phase(base, number, mesh, members=S)
+      sg0, aa0, kinit = _member_states(phase, cfgs, number, keys)
+      if sg_state is None:
+        sg_state, aa_state = sg0, aa0
+      carry = phase.init(*put((kinit, sg_state, aa_state)))
+      calls = -(-phase.iterations // base.iters_per_call)
+      total = calls * base.iters_per_call * base.steps_per_iter
+      for call in range(calls):
+        tc = time.time()
+        carry, m = phase.run(carry)
+        m = jax.device_get(m)
+        dt = time.time() - tc
+        wall += dt
+        compile_s.setdefault(str(number), dt)
+        sps = S * base.iters_per_call * base.steps_per_iter / dt
+        for i in range(base.iters_per_call):
+          env_steps += base.steps_per_iter
+          for s in range(S):
+            mi = {k: float(np.asarray(v)[s, i]) for k, v in m.items()}
+            d = derived(mi)
+            last[s] = d
+            per_phase[s][str(number)] = d
+            if main:
+              loggers[s].log({"phase": number, "iteration": call * base.iters_per_call + i + 1,
+                              "env_steps": env_steps, "sps": sps / S, "first_call": call == 0, **d,
+                              **{k: v for k, v in mi.items() if k.startswith(("sg_", "aa_")) or k == "turn"}})
+        bar.show(number, (call + 1) * base.iters_per_call * base.steps_per_iter, total, sps,
+                 float(np.nanmean([x["svr"] for x in last])), float(np.nanmean([x["rsr"] for x in last])),
+                 float(np.nanmean([x["return"] for x in last])), force=call == calls - 1)
+      if bar.tty and progress and main:
+        print(file=sys.stderr)
+      sg_state, aa_state = distributed.to_host((carry.sg, carry.aa))
+    summaries = []
+    for s, (c, d) in enumerate(zip(cfgs, dirs)):
+      sg_s = jax.tree.map(lambda x: x[s], sg_state)
+      summ = {"run_dir": os.path.abspath(d), "config": c.to_dict(), "env_steps": env_steps, "train_wall_s": wall,
+              "compile_s": compile_s, "sweep_members": S, "devices": mesh.size,
+              "final_train_metrics": per_phase[s],
+              "backend": jax.default_backend(), "date": time.strftime("%Y-%m-%d")}
+      if main and export:
+        summ["export"] = export_policy(c, d, sg_s)
+      if main and c.eval_missions > 0:
+        summ["heldout"] = it.heldout(c, sg_s, c.eval_missions)
+      if main:
+        with open(os.path.join(d, "summary.json"), "w") as f:
+          json.dump(summ, f, indent=1, default=float)
+      summ["sg_state"] = sg_s
+      summaries.append(summ)
+    return summaries
+  finally:
+    for lg in loggers:
+      lg.close()
