@@ -156,9 +156,10 @@ def _sweep(members, out, a):
 
 def main(argv=None):
   a = parse_args(argv)
-  from specguard_jax.ppo import distributed, runner
+  from specguard_jax.ppo import distributed   # importing runner starts the backend: join the processes first
   try:
     distributed.initialize(a.coordinator, a.num_processes, a.process_id)
+    from specguard_jax.ppo import runner
     if a.resume:
       cfg = runner.load_run_config(a.resume)
       out = a.resume
@@ -176,7 +177,8 @@ def main(argv=None):
     if members:
       _sweep(members, out, a)
       return 0
-    s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export)
+    s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export,
+                     num_devices=a.devices if a.resume else None)
   except ValueError as e:
     print(f"\ntrain.py: error: {e}", file=sys.stderr)
     return 2

@@ -54,7 +54,8 @@ def _mem():
     st = jax.local_devices()[0].memory_stats() or {}
     if not st:
       return {}
-    return {"peak_gb": st.get("peak_bytes_in_use", 0) / 2**30, "limit_gb": st.get("bytes_limit", 0) / 2**30}
+    return {"in_use_gb": st.get("bytes_in_use", 0) / 2**30, "peak_gb": st.get("peak_bytes_in_use", 0) / 2**30,
+            "limit_gb": st.get("bytes_limit", 0) / 2**30}
   except Exception:  # noqa: BLE001 - not every backend reports memory
     return {}
 
@@ -73,7 +74,7 @@ def throughput(a, envs, devices, phase):
     carry, m = ph.run(carry)
     jax.device_get(m)     # what the runner does every call (metrics to the host)
   dt = time.perf_counter() - t
-  sps = a.calls * cfg.iters_per_call * cfg.steps_per_iter / dt
+  sps = a.calls * cfg.iters_per_call * cfg.steps_per_iter / dt if a.calls else float("nan")
   del carry
   return sps, first, _mem()
 
@@ -84,15 +85,16 @@ def _is_oom(e):
 
 
 def max_envs(a, start, devices, limit):
-  """Double the env count from `start` until a phase-2 call fails with an out-of-memory error (or `limit`)."""
+  """Double the env count from `start` until a phase-2 call (compile + one call, the run's unroll and
+  iterations per call) fails with an out-of-memory error (or `limit`)."""
   ok, tried, n = None, [], start
   while n <= limit:
     try:
-      sps, first, mem = throughput(argparse.Namespace(**{**vars(a), "calls": 1}), n, devices, 2)
+      sps, first, mem = throughput(argparse.Namespace(**{**vars(a), "calls": 0}), n, devices, 2)
       tried.append({"envs": n, "ok": True, "sps": sps, "first_call_s": first, **mem})
       ok = n
-      print(f"  {n:>9} envs: ok ({sps / 1e6:.2f} M steps/s, {mem.get('peak_gb', float('nan')):.1f} GB peak)",
-            flush=True)
+      print(f"  {n:>9} envs: ok (compile + one call {first:.0f} s, {mem.get('in_use_gb', float('nan')):.1f} GB in "
+            "use)", flush=True)
     except Exception as e:  # noqa: BLE001
       if not _is_oom(e):
         raise
@@ -248,7 +250,7 @@ def main(argv=None):
   save = lambda: json.dump(res, open(os.path.join(a.out, "scaling.json"), "w"), indent=1)  # noqa: E731
   if not a.no_throughput:
     print(f"### Training throughput ({a.vehicle}, {res['device']}, unroll {a.unroll}, compile excluded)\n")
-    print("| devices | envs (global) | envs / device | phase | M env steps/s | x 1 device | first call s | peak GB |")
+    print("| devices | envs (global) | envs / device | phase | M env steps/s | x 1 device | first call s | GB in use |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)
     for e in a.envs:
       for p in a.phases:
@@ -262,7 +264,7 @@ def main(argv=None):
           res["throughput"].append(row)
           rel = f"{sps / base:.2f}" if base else "-"
           print(f"| {d} | {n} | {n // d} | {p} | {sps / 1e6:.3f} | {rel} | {first:.1f} | "
-                f"{mem.get('peak_gb', float('nan')):.1f} |", flush=True)
+                f"{mem.get('in_use_gb', float('nan')):.1f} |", flush=True)
           save()
           jax.clear_caches()
   if a.max_envs:

@@ -209,7 +209,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
              "attacked": attacked * done, "attacked_complete": attacked * complete,
              "attacked_violated": attacked * viol * done, "return_sum": ep_ret * done,
              "return_aa_sum": ep_ret_aa * done, "reward_sum": r_sg, "override_steps": mask}
-    stats = jax.tree.map(lambda x: jnp.sum(x), stats)
+    stats = jax.tree.map(lambda x: jnp.sum(x, axis=1), stats)   # [G]: per-group sums (no cross-device reduce per step)
     ep_ret = ep_ret * (1.0 - done)
     ep_ret_aa = ep_ret_aa * (1.0 - done)
     return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa), (out, stats)
@@ -223,7 +223,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   def upd(agent, state, batch, key):
     return losses.update(agent, state, batch, key, groups=G, constrain=shard)
 
-  def one_iteration(carry: Carry, _):
+  def one_iteration(carry: Carry, _, turn=None):
+    """One iteration; turn: phase 2's learner (0 SG, 1 AA), from carry.iteration unless given (sweeps pass the
+    members' common turn unbatched, so lax.cond stays a branch under vmap instead of running both updates)."""
     rng, k_roll, k_sg, k_aa = jax.random.split(carry.rng, 4)
     init_c = (carry.sg, carry.aa, carry.env_state, carry.ep_return, carry.ep_return_aa)
     (_, _, state, ep_ret, ep_ret_aa), (tr, stats) = jax.lax.scan(
@@ -233,7 +235,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])
     zeros = lambda shape: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
     if adversarial:
-      turn = (carry.iteration // cfg.alternate_iters) % 2
+      turn = (carry.iteration // cfg.alternate_iters) % 2 if turn is None else turn
       aa_batch = advantages(tr["aa"], cfg.aa)
       aa_shape = jax.eval_shape(lambda: upd(aa, carry.aa, aa_batch, k_aa)[1])
       sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: upd(sg, carry.sg, sg_batch, k_sg),
@@ -253,10 +255,18 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   def run(carry: Carry):
     return jax.lax.scan(one_iteration, carry, None, length=cfg.iters_per_call)
 
+  def run_members(c):
+    """K iterations of every member: carry [S, ...] -> (carry, metrics [S, K]); all members share the turn."""
+    def body(c, _):
+      turn = (c.iteration[0] // cfg.alternate_iters) % 2
+      return jax.vmap(lambda ci: one_iteration(ci, None, turn))(c)
+    c, m = jax.lax.scan(body, c, None, length=cfg.iters_per_call)
+    return c, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), m)
+
   if members:
     msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
     init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
-    run_fn = jax.jit(lambda c: msh(jax.vmap(run)(msh(c))), donate_argnums=0)
+    run_fn = jax.jit(lambda c: msh(run_members(msh(c))), donate_argnums=0)
   else:
     init_fn, run_fn = jax.jit(init), jax.jit(run, donate_argnums=0)
   return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=init_fn, run=run_fn,

@@ -174,10 +174,11 @@ def load_run_config(run_dir: str) -> TrainConfig:
 
 
 def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: bool = True,
-          stop_after_calls: int | None = None, export: bool = True, log=print) -> dict:
+          stop_after_calls: int | None = None, export: bool = True, log=print, num_devices: int | None = None) -> dict:
   """Train SpecGuard (phase 1 then phase 2) into run_dir; returns the summary dict (also written to summary.json).
 
-  resume: continue from run_dir's newest checkpoint (its config.json wins over `cfg`).  stop_after_calls: stop
+  resume: continue from run_dir's newest checkpoint (its config.json wins over `cfg`; num_devices may override its
+  device count: the checkpoint restores onto any device count dividing its env_groups).  stop_after_calls: stop
   (after checkpointing) once this many compiled calls ran in this process: a deterministic stand-in for a kill.
   """
   main = distributed.is_main()
@@ -186,6 +187,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     cfg = load_run_config(run_dir)
   else:
     cfg.validate()
+  if num_devices is not None:
+    cfg = dataclasses.replace(cfg, num_devices=num_devices)
   mesh = distributed.make_mesh(cfg.num_devices)
   # The env-group count fixes the program (and the checkpoint's shapes): resolve it once and keep it in config.json,
   # so a resume on another device count (dividing it) continues the same run.
