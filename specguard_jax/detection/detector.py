@@ -56,7 +56,7 @@ CHANNEL_SENSOR = (0, 0, 0, 0, 0, 0, _S["baro"], _S["mag"], _S["flow"], _S["flow"
                   _S["accel"], _S["accel"], _S["accel"], _S["gyro"], _S["gyro"], _S["gyro"])
 _GPS_H = np.array([1, 1, 0, 1, 1, 1] + [0] * 11, np.float32)   # GPS horizontal position + velocity channels
 _GPS_Z = 2
-_S_CH = {n: i for i, n in enumerate(ekf_lib.CHANNELS) if n in ("mag",)} | {"flow": ekf_lib.CHANNELS.index("flow_x")}
+_MAG_CH, _FLOW_CH = ekf_lib.CHANNELS.index("mag"), ekf_lib.CHANNELS.index("flow_x")   # flow_x, flow_y adjacent
 _IMU0 = len(ekf_lib.CHANNELS)
 _GROUND_Z_DRONE = 0.12
 _ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
@@ -280,7 +280,7 @@ def diagnose(cfg: DetectorConfig, peak):
   # accelerometer bias corrupts the predicted vertical velocity before the position, while a GPS spoof moves the
   # position, or (a ramping spoofer) the horizontal velocity, first.
   gps_pos, gps_vel_h, gps_vel_z = jnp.max(p[0:3]), jnp.max(p[3:5]), p[5]
-  mag, flow = p[_S_CH["mag"]], jnp.max(p[_S_CH["flow"]:_S_CH["flow"] + 2])
+  mag, flow = p[_MAG_CH], jnp.max(p[_FLOW_CH:_FLOW_CH + 2])
   c = cfg.imu_corroborate
   gyro_like = (mag >= 1.0) & (jnp.maximum(jnp.maximum(gps_pos, jnp.maximum(gps_vel_h, gps_vel_z)), flow) >= c)
   accel_like = (gps_vel_z >= 1.0) & (gps_vel_h < c) & (gps_pos < 0.5 * c) & (mag < c)

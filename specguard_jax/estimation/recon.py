@@ -32,6 +32,7 @@ from flax import struct
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
+from specguard_jax.detection.detector import CHANNEL_SENSOR
 from specguard_jax.estimation import checkpointer as ck
 from specguard_jax.estimation import dynamics as dyn
 from specguard_jax.estimation import traces
@@ -55,10 +56,9 @@ def _deps():
 
 
 SENSOR_DEPS = _deps()
-# [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (odometry: none; it cannot be attacked).
-_CHANNEL_MASK = np.zeros((len(ekf_lib.CHANNELS), len(SENSOR_NAMES)), np.float32)
-for _c, _n in enumerate(("gps",) * 6 + ("baro", "mag", "flow", "flow")):
-  _CHANNEL_MASK[_c, SENSOR_NAMES.index(_n)] = 1.0
+# [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (the detector's map; odometry: none).
+_CHANNEL_MASK = (np.asarray(CHANNEL_SENSOR[:len(ekf_lib.CHANNELS)])[:, None]
+                 == np.arange(len(SENSOR_NAMES))[None, :]).astype(np.float32)
 """[6, 15] bool: SENSOR_DEPS[s, i] = component i of x'_t derives from sensor s (SENSOR_NAMES order)."""
 
 # Checkpoint entry layout: pos 3, vel 3, acc 3, quat 4, rate 3, gyro_bias 3, accel_bias 3.
