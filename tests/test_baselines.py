@@ -1,6 +1,7 @@
 """Prior-work baselines (specguard_jax.baselines): each builds at train_budget='ci' with our code and flies short
-missions with and without an attack; SSR's software-sensor GPS tracks the truth under a GPS spoof; PID-Piper's
-imitation error is bounded; the survival reward; corrupt caches are one-line errors.
+missions with and without an attack; SSR's software-sensor GPS tracks the truth under a GPS spoof and its force model
+generalises; PID-Piper and UnRocker beat trivial predictors on held-out missions; the vectorised attacked replays;
+the survival reward; corrupt caches are one-line errors.
 FTC trains with the PPO trainer (~3 min on 2 CPU cores): set BASELINES_FTC=1 to run its build-and-fly test."""
 
 import os
@@ -74,21 +75,49 @@ def test_ssr_software_gps_tracks_truth_under_spoof(ssr_flight):
   assert np.median(err_gps) > 15.0                      # the spoofed GPS it replaces
 
 
-def test_pid_piper_imitation_error_and_flight(ctx):
+def test_ssr_force_model_generalises(ssr_flight, ctx):
+  _, meta = common.load_tree(common.cache_path(ctx, "ssr", "msgpack"))
+  # specific-force residual on held-out missions (m/s^2): same order as on the fitted ones, far below gravity
+  assert np.all(np.asarray(meta["heldout_rms_m_s2"]) < 2.5), meta
+  assert np.all(np.asarray(meta["heldout_rms_m_s2"]) < 3.0 * np.asarray(meta["rms_m_s2"]) + 0.2), meta
+
+
+def test_pid_piper_generalises_and_flies(ctx):
   c = controllers.build("pid_piper", ctx)
   _, meta = common.load_tree(common.cache_path(ctx, "pid_piper", "msgpack"))
-  # held-out attack-free steps (unseen mission): the 'ci' budget trains on 5 missions x 30 s only
-  assert meta["heldout_rmse_m_s"] < 4.0, meta
+  # held-out missions (never trained on): the FFC must beat predicting their mean setpoint by 2x, not only fit the
+  # training missions (the 'ci' budget trains on 6 missions x 30 s)
+  assert meta["heldout_steps"] > 100 and meta["train_steps"] > 400, meta
+  assert meta["heldout_rmse_m_s"] < 0.5 * meta["heldout_setpoint_rms_m_s"], meta
+  assert meta["loss_curve"][-1] < 0.2 * meta["loss_curve"][0], meta
   tr = fly(c, int(SECONDS / 0.1))
   assert all(np.all(np.isfinite(v)) for v in tr.values())
   assert (tr["alarm"][:, 1] > 0).any()
 
 
-def test_unrocker_flies(ctx):
+def test_unrocker_denoises_heldout_and_flies(ctx):
   c = controllers.build("unrocker", ctx)
+  _, meta = common.load_tree(common.cache_path(ctx, "unrocker", "msgpack"))
+  # held-out missions' attacked replays: the DAE output is closer to the truth than its attacked input
+  assert meta["heldout_loss"] < 0.7 * meta["heldout_loss_identity"], meta
+  assert meta["loss_curve"][-1] < 0.2 * meta["loss_curve"][0], meta
   tr = fly(c, int(SECONDS / 0.1))
   assert all(np.all(np.isfinite(v)) for v in tr.values())
   assert (tr["alarm"][:, 1] > 0).any()
+
+
+def test_training_pairs_attack_every_combo(ctx):
+  from specguard_jax.baselines import unrocker
+  env, tr = common.flights("drone", tuple(ctx.worlds), ctx.train_budget, ctx.seed)   # memoised: the builds' flights
+  x, y, w = unrocker.training_pairs(env.ekf_cfg, env.config.tick_dt, tr, jax.random.PRNGKey(1))   # compiled by build
+  b, t = tr["time"].shape
+  assert x.shape == (b, len(unrocker.COMBOS), t, 15) and y.shape == (b, t, 15) and w.shape == x.shape[:3]
+  err = np.abs(np.asarray(x) - np.asarray(y)[:, None])
+  late = slice(int(0.8 * t), None)                     # every attack is on by 60 % of the flight
+  gps = [i for i, (s, _) in enumerate(unrocker.COMBOS) if s == "gps"]
+  assert np.all(np.asarray(w)[:, :, late] == 1.0)
+  assert np.median(err[:, gps, late, 0:3]) > 1.0      # spoofed GPS moves the replayed EKF's position
+  assert np.median(err[:, :, : int(0.15 * t), 0:3]) < 1.0   # before any onset: the attack-free EKF
 
 
 @pytest.mark.skipif(not os.environ.get("BASELINES_FTC"), reason="FTC trains with PPO (~3 min): BASELINES_FTC=1")

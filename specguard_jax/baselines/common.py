@@ -1,10 +1,12 @@
-"""Shared pieces of the baseline builders: training budgets, attack-free flight recording, artifact cache.
+"""Shared pieces of the baseline builders: training budgets, attack-free flight recording, supervised fits, cache.
 
-`flights(vehicle, worlds, budget, seed)` flies attack-free autopilot missions (batched, one jitted lax.scan over
-autopilot ticks, like estimation.traces.record) and records per tick what the baselines train on: truth, readings,
-EKF, controls of the previous tick, navigator phase, the navigator's velocity setpoint (recomputed with
-autopilot.navigator.nav_step from the tick's inputs: exactly what the autopilot was given) and the policy
-observation. Memoised per process: SSR, UnRocker and PID-Piper share one recording.
+`flights(vehicle, worlds, budget, seed)` flies attack-free autopilot missions (all missions vmapped in one jitted
+lax.scan over env steps, each an inner scan over its autopilot ticks) and records per tick what the baselines train
+on: truth, readings, the EKF's nominal state (not its covariance: the recording stays small; the full initial EKF
+state is kept for replays), controls of the previous tick, navigator phase and the navigator's velocity setpoint
+(recomputed with autopilot.navigator.nav_step from the tick's inputs: exactly what the autopilot was given); per env
+step the policy observation. Memoised per process: SSR, UnRocker and PID-Piper share one recording (and its compile).
+`adam_fit` is the one minibatch Adam loop of the learned baselines (PID-Piper's MLP, UnRocker's DAE).
 """
 
 from __future__ import annotations
@@ -24,18 +26,23 @@ BUDGETS = ("ci", "full")
 
 @dataclasses.dataclass(frozen=True)
 class Budget:
-  """missions x seconds of attack-free flights; fit_steps: supervised (Adam) steps for the learned models."""
+  """Training size of the baselines that learn from attack-free flights (FTC: ftc.train_config).
+
+  missions x seconds: the shared flight recording (SSR's ridge fit, UnRocker's pairs, PID-Piper's samples);
+  fit_steps x batch: Adam minibatches of PID-Piper's MLP and UnRocker's DAE; pair_stride: UnRocker keeps every
+  pair_stride-th tick of its attacked replays (neighbouring ticks are near duplicates)."""
   missions: int
   seconds: float
   fit_steps: int
   batch: int
+  pair_stride: int = 1
 
 
 def budget(name: str) -> Budget:
   if name == "ci":
-    return Budget(missions=6, seconds=30.0, fit_steps=1500, batch=256)
+    return Budget(missions=8, seconds=30.0, fit_steps=1500, batch=256, pair_stride=1)
   if name == "full":
-    return Budget(missions=512, seconds=90.0, fit_steps=20000, batch=4096)
+    return Budget(missions=512, seconds=90.0, fit_steps=20000, batch=2048, pair_stride=5)
   raise ValueError(f"unknown train_budget {name!r}; choose one of {', '.join(BUDGETS)}")
 
 
@@ -85,70 +92,122 @@ def make_env(vehicle: str, worlds: tuple, seconds: float, **kw):
   return envs.make(vehicle, worlds=tuple(worlds), mission=mcfg, **kw)
 
 
-@functools.partial(jax.jit, static_argnames=("env", "n_ticks"))
-def _record(env, keys, n_ticks: int):
+EKF_FIELDS = ("pos", "vel", "quat", "gyro_bias", "accel_bias")
+
+
+@functools.partial(jax.jit, static_argnames=("env", "n_steps"))
+def _record(env, keys, n_steps: int):
+  """Attack-free flights of len(keys) missions for n_steps env steps (module doc); per-tick leaves [B, T, ...]
+  (T = n_steps * ticks_per_step), 'obs' [B, n_steps, 24] (policy observation at each env step's start), 'ekf0'
+  the EKF state before the first tick [B, ...]."""
   from specguard_jax.autopilot import navigator as nav_lib
   from specguard_jax.estimation import traces
+  k = env.config.ticks_per_step
   state = jax.vmap(env.reset)(keys)
 
   def one(state, key):
     info = state.info
     mission, world = info["mission"], info["world"]
 
-    def tick(carry, k):
+    def tick(carry, kt):
       data, sim = carry
       u_prev = traces.vehicle_controls(env.vehicle, sim)
-      obs = env._observation(world, mission, sim)     # what a policy deciding at this tick would see
       landed = env._vehicle_landed(sim)
-      data2, sim2 = env._tick(data, sim, mission, world, jnp.zeros(3), jnp.zeros((), bool), k, None)
+      data2, sim2 = env._tick(data, sim, mission, world, jnp.zeros(3), jnp.zeros((), bool), kt, None)
       _, vel_nav, _ = nav_lib.nav_step(env._nav_params(), sim["nav"], mission, sim2["ekf"].pos, landed,
                                        env.config.tick_dt)
-      out = {"truth": sim["truth"], "readings": sim2["readings"], "ekf": sim2["ekf"], "ekf_prev": sim["ekf"],
-             "controls": u_prev, "time": sim2["nav"].time, "phase": sim2["nav"].phase, "vel_nav": vel_nav,
-             "obs": obs}
+      e = sim2["ekf"]
+      out = {"truth": sim["truth"], "readings": sim2["readings"], "ekf": {f: getattr(e, f) for f in EKF_FIELDS},
+             "controls": u_prev, "time": sim2["nav"].time, "phase": sim2["nav"].phase, "vel_nav": vel_nav}
       return (data2, sim2), out
 
-    _, tr = jax.lax.scan(tick, (state.pipeline_state, info["sim"]), jax.random.split(key, n_ticks))
-    return tr
+    def step(carry, ks):
+      obs = env._observation(world, mission, carry[1])   # what a policy deciding at this step would see
+      carry, out = jax.lax.scan(tick, carry, ks)
+      return carry, (obs, out)
 
-  return jax.vmap(one)(state, jax.vmap(lambda k: jax.random.fold_in(k, 7))(keys))
+    ks = jax.random.split(key, n_steps * k).reshape((n_steps, k) + key.shape)
+    _, (obs, tr) = jax.lax.scan(step, (state.pipeline_state, info["sim"]), ks)
+    return dict(jax.tree.map(lambda a: a.reshape((n_steps * k,) + a.shape[2:]), tr), obs=obs)
+
+  tr = jax.vmap(one)(state, jax.vmap(lambda kk: jax.random.fold_in(kk, 7))(keys))
+  return dict(tr, ekf0=state.info["sim"]["ekf"])
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=2)
 def flights(vehicle: str, worlds: tuple, budget_name: str, seed: int):
-  """(env, trace dict with leaves [B, T, ...]) of budget(budget_name).missions attack-free flights (see module doc)."""
+  """(env, trace dict) of budget(budget_name).missions attack-free flights of budget.seconds (module doc): leaves
+  [B, T, ...] per autopilot tick ('truth', 'readings', 'ekf' (nominal state: EKF_FIELDS), 'controls' of the previous
+  tick, 'time', 'phase', 'vel_nav'), 'obs' [B, S, 24] per env step, 'ekf0' [B] the full EKF state before tick 0."""
   b = budget(budget_name)
   env = make_env(vehicle, worlds, b.seconds)
   keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 0xB45E), b.missions)
-  tr = _record(env, keys, int(round(b.seconds / env.config.tick_dt)))
+  tr = _record(env, keys, int(round(b.seconds / (env.config.tick_dt * env.config.ticks_per_step))))
   return env, jax.block_until_ready(tr)
 
 
-def fit_mlp(x, y, w, hidden: tuple, steps: int, batch: int, key, lr: float = 1e-3):
-  """Supervised MLP (flax + optax Adam, cosine decay) on standardised inputs: minimises sum_j w (f(x) - y)^2 / sum w.
-  x [N, n], y [N, m], w [N] >= 0. Returns params {'net', 'x_mean', 'x_std', 'y_scale'} for `mlp_apply`."""
+def adam_fit(loss_fn, params, weights, steps: int, batch: int, key, lr: float):
+  """Minimise loss_fn(params, idx [batch] int32, key) with Adam (cosine decay to 5 % of lr) over `steps` minibatches
+  of row indices drawn with replacement in proportion to weights [N] >= 0 (jittable; call inside jit).
+  Returns (params, losses [steps])."""
   import optax
+  opt = optax.adam(optax.cosine_decay_schedule(lr, steps, 0.05))
+  cdf = jnp.cumsum(weights.astype(jnp.float32))
+  n = weights.shape[0]
+
+  def body(carry, k):
+    p, st = carry
+    k_idx, k_loss = jax.random.split(k)
+    idx = jnp.searchsorted(cdf, jax.random.uniform(k_idx, (batch,)) * cdf[-1], side="right")
+    loss, g = jax.value_and_grad(loss_fn)(p, jnp.minimum(idx, n - 1).astype(jnp.int32), k_loss)
+    upd, st = opt.update(g, st, p)
+    return (optax.apply_updates(p, upd), st), loss
+
+  (params, _), losses = jax.lax.scan(body, (params, opt.init(params)), jax.random.split(key, steps))
+  return params, losses
+
+
+def turn_about_z(v, angle, xy_pairs: tuple, yaw_index: int):
+  """Rows of v [N, n] as seen in a world turned by angle [N] (rad) about z: each (i, j) of xy_pairs is a world-frame
+  horizontal vector (rotated), v[:, yaw_index] an Euler yaw (shifted, wrapped to [-pi, pi)); the rest is unchanged."""
+  c, s = jnp.cos(angle), jnp.sin(angle)
+  for i, j in xy_pairs:
+    vi, vj = v[:, i], v[:, j]
+    v = v.at[:, i].set(c * vi - s * vj).at[:, j].set(s * vi + c * vj)
+  if yaw_index is not None:
+    v = v.at[:, yaw_index].set(wrap_angle(v[:, yaw_index] + angle))
+  return v
+
+
+def wrap_angle(a):
+  return jnp.mod(a + jnp.pi, 2 * jnp.pi) - jnp.pi
+
+
+def loss_curve(losses, points: int = 10) -> list:
+  """Mean training loss over `points` equal chunks of the steps (cache meta: does the fit plateau?)."""
+  a = np.asarray(losses, np.float64)
+  return [float(f"{c.mean():.4g}") for c in np.array_split(a, min(points, len(a)))]
+
+
+@functools.partial(jax.jit, static_argnames=("hidden", "steps", "batch", "augment"))
+def fit_mlp(x, y, w, hidden: tuple, steps: int, batch: int, key, lr: float = 1e-3, augment=None):
+  """Supervised MLP (flax + optax Adam, cosine decay) on standardised inputs: minimises sum_j w (f(x) - y)^2 / sum w.
+  x [N, n], y [N, m], w [N] >= 0; augment (hashable, optional): (x [b, n], y [b, m], key) -> (x, y) applied to each
+  minibatch. Returns (params {'net', 'x_mean', 'x_std', 'y_scale'} for `mlp_apply`, losses [steps])."""
   x_mean, x_std = jnp.mean(x, 0), jnp.std(x, 0) + 1e-3
   y_scale = jnp.std(y, 0) + 1e-3
   net = _MLP(tuple(hidden), y.shape[-1])
   k_init, k_b = jax.random.split(key)
-  p = net.init(k_init, jnp.zeros((1, x.shape[-1])))
-  opt = optax.adam(optax.cosine_decay_schedule(lr, steps, 0.05))
-  xs, ys = (x - x_mean) / x_std, y / y_scale
-  probs = w / jnp.sum(w)
+  p0 = net.init(k_init, jnp.zeros((1, x.shape[-1])))
 
-  def body(carry, k):
-    p, st = carry
-    idx = jax.random.choice(k, xs.shape[0], (batch,), p=probs)
-    loss, g = jax.value_and_grad(lambda p: jnp.mean((net.apply(p, xs[idx]) - ys[idx]) ** 2))(p)
-    upd, st = opt.update(g, st, p)
-    return (optax.apply_updates(p, upd), st), loss
+  def loss_fn(p, idx, k):
+    xb, yb = x[idx], y[idx]
+    if augment is not None:
+      xb, yb = augment(xb, yb, k)
+    return jnp.mean((net.apply(p, (xb - x_mean) / x_std) - yb / y_scale) ** 2)
 
-  (p, _), losses = jax.lax.scan(body, (p, opt.init(p)), jax.random.split(k_b, steps))
+  p, losses = adam_fit(loss_fn, p0, w, steps, batch, k_b, lr)
   return {"net": p, "x_mean": x_mean, "x_std": x_std, "y_scale": y_scale}, losses
-
-
-fit_mlp = jax.jit(fit_mlp, static_argnames=("hidden", "steps", "batch"))
 
 
 def mlp_apply(hidden: tuple, params, x):
@@ -169,3 +228,26 @@ class _MLP(nn.Module):
     for h in self.hidden:
       x = nn.tanh(nn.Dense(h)(x))
     return nn.Dense(self.n_out)(x)
+
+def budget_summary(name: str) -> dict:
+  """The sizes of budget `name` (bench/build_baselines.py reports them)."""
+  return dataclasses.asdict(budget(name))
+
+
+def build_meta(ctx, name: str) -> dict:
+  """What a built baseline's cache says about its training (msgpack meta; FTC: summary + phase-2 return curve)."""
+  if name != "ftc":
+    return load_tree(cache_path(ctx, name, "msgpack"))[1]
+  run = cache_path(ctx, "ftc", "")
+  with open(os.path.join(run, "summary.json")) as f:
+    s = json.load(f)
+  curve = []
+  with open(os.path.join(run, "metrics.jsonl")) as f:
+    for line in f:
+      r = json.loads(line)
+      curve.append([r["phase"], r["env_steps"], round(r["return"], 3), round(r["svr"], 4), round(r["rsr"], 4)])
+  stride = max(1, len(curve) // 20)
+  return {"env_steps": s["env_steps"], "train_wall_s": s["train_wall_s"], "compile_s": s["compile_s"],
+          "converged": s["converged"], "final_train_metrics": s["final_train_metrics"],
+          "curve_phase_steps_return_svr_rsr": curve[::stride] + ([curve[-1]] if curve[-1:] != curve[::stride][-1:]
+                                                                  else [])}

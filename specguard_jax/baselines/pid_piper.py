@@ -33,34 +33,51 @@ class FFCPolicy:
 
 
 def step_samples(env, tr):
-  """(obs [B, S, 24], target setpoint [B, S, 3], mask [B, S]) per env step from tick traces (leaves [B, T, ...])."""
+  """(obs [B, S, 24], target setpoint [B, S, 3], mask [B, S]) per env step from common.flights traces."""
   from specguard_jax.autopilot import navigator as nav_lib
   k = env.config.ticks_per_step
-  b, t = tr["time"].shape
-  s = t // k
-  obs = np.asarray(tr["obs"][:, : s * k: k])
+  obs = np.asarray(tr["obs"])
+  b, s = obs.shape[:2]
   vel = np.asarray(tr["vel_nav"][:, : s * k]).reshape(b, s, k, 3).mean(2)
   ph = np.asarray(tr["phase"][:, : s * k]).reshape(b, s, k)
   mask = np.all((ph == nav_lib.CRUISE) | (ph == nav_lib.LOITER), -1)
   return obs, vel, mask
 
 
-def fit(env, tr, steps: int, batch: int, key):
-  """(params, meta): train on the first 4/5 of the missions, report RMSE (m/s) on the held-out rest."""
+# observation layout (envs.base._observation): world-frame 3-vectors whose horizontal part turns with the world, and
+# the Euler yaw; everything else (heights, distances, margins, roll, pitch) is invariant under a turn about z
+_XY_PAIRS = ((0, 1), (3, 4), (6, 7), (12, 13), (15, 16))
+_YAW = 11
+
+
+@dataclasses.dataclass(frozen=True)
+class YawAugment:
+  """Minibatch augmentation (common.fit_mlp `augment`): turn each sample's world by a random angle about z. The
+  navigator's guidance is equivariant under it (a turned mission gets the turned setpoint), so the FFC learns one
+  behaviour for every direction instead of the few headings of the training missions."""
+
+  def __call__(self, x, y, key):
+    a = jax.random.uniform(key, (x.shape[0],), minval=-jnp.pi, maxval=jnp.pi)
+    return common.turn_about_z(x, a, _XY_PAIRS, _YAW), common.turn_about_z(y, a, ((0, 1),), None)
+
+
+def fit(env, tr, steps: int, batch: int, key, heldout: int | None = None):
+  """(params, meta): train on all but the last `heldout` missions (default a fifth, at least one) with yaw
+  augmentation; report RMSE (m/s) on the held-out ones against the spread of their setpoints (what predicting their
+  mean would score) and the loss curve."""
   obs, vel, mask = step_samples(env, tr)
-  n_train = max(1, int(round(0.8 * obs.shape[0])))
-  if n_train == obs.shape[0] and obs.shape[0] > 1:
-    n_train -= 1
+  b = obs.shape[0]
+  n_train = b - (max(1, b // 5) if heldout is None else heldout) if b > 1 else 1
   tr_x, tr_y, tr_m = (a[:n_train].reshape((-1,) + a.shape[2:]) for a in (obs, vel, mask))
   params, losses = common.fit_mlp(jnp.asarray(tr_x), jnp.asarray(tr_y), jnp.asarray(tr_m, jnp.float32),
-                                  HIDDEN, steps, batch, key)
+                                  HIDDEN, steps, batch, key, augment=YawAugment())
   te_x, te_y, te_m = (a[n_train:].reshape((-1,) + a.shape[2:]) for a in (obs, vel, mask))
   pred = np.asarray(FFCPolicy()(params, jnp.asarray(te_x)))
   err = np.linalg.norm(pred - te_y, axis=-1)[te_m]
   spread = np.linalg.norm(te_y - te_y[te_m].mean(0), axis=-1)[te_m]
   meta = {"heldout_rmse_m_s": float(np.sqrt(np.mean(err ** 2))), "heldout_setpoint_rms_m_s":
           float(np.sqrt(np.mean(spread ** 2))), "heldout_steps": int(te_m.sum()), "train_steps": int(tr_m.sum()),
-          "final_loss": float(np.asarray(losses)[-50:].mean())}
+          "final_loss": float(np.asarray(losses)[-50:].mean()), "loss_curve": common.loss_curve(losses)}
   return params, meta
 
 

@@ -20,6 +20,7 @@ not know) is added while rolling open loop.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 
 import jax
@@ -43,20 +44,29 @@ N_ENTRY = 13
 @dataclasses.dataclass(frozen=True)
 class SSRConfig:
   """window: checkpoint ring (ticks).  lag: checkpoint age the model starts from when the alarm rises (ticks).
-  bias_correction: add the window's mean model acceleration residual while open loop."""
+  bias_correction: add the window's mean model acceleration residual while open loop.
+  gates: per sensor (SENSOR_NAMES order) how far the physical reading may be from its software twin and still count
+  as agreeing (GPS position m, gyro rad/s, accel m/s^2, mag rad, baro m, flow rad/s); agree_tau: time constant (s) of
+  the smoothed disagreement that decides the hand-back."""
   window: int = 50
   lag: int = 10
   bias_correction: bool = True
+  gates: tuple = (5.0, 0.1, 1.0, 0.2, 2.0, 0.3)
+  agree_tau: float = 1.0
 
 
 @struct.dataclass
 class SSRState:
   """ckpt: trusted (state, control) ring.  model: DynState of the software-sensor model (meaningful while active).
-  bias: [3] world acceleration correction (m/s^2).  active: [] bool, software sensors in use."""
+  bias: [3] world acceleration correction (m/s^2).  active: [] bool, software sensors in use.  mask: [6] the sensors
+  they replace (the detector's diagnosis, latched while active).  disagree: [6] smoothed |physical - software| /
+  gate per sensor (> 1: the physical sensor is still off its software twin)."""
   ckpt: ck.CheckpointState
   model: dyn.DynState
   bias: jnp.ndarray
   active: jnp.ndarray
+  mask: jnp.ndarray
+  disagree: jnp.ndarray
 
 
 def _features(s: dyn.DynState, u):
@@ -94,25 +104,38 @@ def specific_force(fm: ForceModel, s: dyn.DynState, u):
   return fm.w @ _features(s, u)
 
 
-def fit_force_model(tr, vehicle: str, dt: float, lam: float = 1e-3) -> ForceModel:
-  """Ridge fit of the structured specific-force model on attack-free flights (common.flights traces, leaves
-  [B, T, ...]): states from the EKF, target = accelerometer minus the EKF's bias; airborne ticks only (drone)."""
+def _force_data(tr, vehicle: str):
+  """(features [B, T-1, F], target specific force [B, T-1, 3], weight [B, T-1]) of flights tr (leaves [B, T, ...]):
+  states from the EKF, target = accelerometer minus the EKF's bias; airborne ticks only (drone)."""
   e, rd = tr["ekf"], tr["readings"]
-  s = dyn.DynState(pos=e.pos, vel=e.vel, quat=e.quat, rate=rd.gyro - e.gyro_bias)
-  n_u = tr["controls"].shape[-1]
-  sp = jax.tree.map(lambda a: a[:, :-1].reshape((-1,) + a.shape[2:]), s)
-  u_next = tr["controls"][:, 1:].reshape(-1, n_u)
-  phi = jax.vmap(_features)(sp, u_next)
-  y = (rd.accel - e.accel_bias)[:, 1:].reshape(-1, 3)
+  s = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=rd.gyro - e["gyro_bias"])
+  sp = jax.tree.map(lambda a: a[:, :-1], s)
+  phi = jax.vmap(jax.vmap(_features))(sp, tr["controls"][:, 1:])
+  y = (rd.accel - e["accel_bias"])[:, 1:]
   valid = jnp.ones(tr["time"].shape, bool) if vehicle != "drone" else tr["truth"].pos[..., 2] > 0.5
-  w = (valid[:, 1:] & valid[:, :-1]).reshape(-1).astype(jnp.float32)
-  mask = feature_mask(vehicle, n_u)
+  return phi, y, (valid[:, 1:] & valid[:, :-1]).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("vehicle", "heldout"))
+def fit_force_model(tr, vehicle: str, lam: float = 1e-3, heldout: int = 0):
+  """Ridge fit of the structured specific-force model on attack-free flights (common.flights traces, leaves
+  [B, T, ...]), one axis at a time over its feature_mask. heldout > 0: fit on all but the last `heldout` missions.
+  Returns (ForceModel, held-out residual RMS [3] (m/s^2) on the last `heldout` missions, NaN when heldout = 0)."""
+  phi, y, w = _force_data(tr, vehicle)
+  n_fit = phi.shape[0] - heldout
+  flat = lambda a: a.reshape((-1,) + a.shape[2:])   # noqa: E731
+  mask = feature_mask(vehicle, phi.shape[-1] - 11)
   ws, rms = [], []
   for ax in range(3):
-    wa, ra = dyn._ridge(phi * jnp.asarray(mask[ax], jnp.float32), y[:, ax:ax + 1], w, lam)
+    m = jnp.asarray(mask[ax], jnp.float32)
+    wa, ra = dyn._ridge(flat(phi[:n_fit]) * m, flat(y[:n_fit, ..., ax:ax + 1]), flat(w[:n_fit]), lam)
     ws.append(wa[0] * mask[ax])
     rms.append(ra[0])
-  return ForceModel(w=jnp.stack(ws), rms=jnp.stack(rms))
+  fm = ForceModel(w=jnp.stack(ws), rms=jnp.stack(rms))
+  if not heldout:
+    return fm, jnp.full(3, jnp.nan)
+  res = (jnp.einsum("af,btf->bta", fm.w, phi[n_fit:]) - y[n_fit:]) * w[n_fit:, :, None]
+  return fm, jnp.sqrt(jnp.sum(res ** 2, (0, 1)) / jnp.maximum(jnp.sum(w[n_fit:]), 1.0))
 
 
 def _unpack(e) -> dyn.DynState:
@@ -209,25 +232,32 @@ class SoftwareSensors(Estimator):
   def init(self, ekf, readings):
     s = dyn.DynState(pos=ekf.pos, vel=ekf.vel, quat=ekf.quat, rate=readings.gyro - ekf.gyro_bias)
     return SSRState(ckpt=ck.ckpt_init(self.cfg.window, N_ENTRY, self.n_u), model=s, bias=jnp.zeros(3),
-                    active=jnp.zeros((), bool))
+                    active=jnp.zeros((), bool), mask=jnp.zeros(len(SENSOR_NAMES)),
+                    disagree=jnp.zeros(len(SENSOR_NAMES)))
 
   def pre_ekf(self, sim, readings):
     st: SSRState = sim["baseline"]
     det = sim["det"]
     alarm = jnp.asarray(det.alarm) > 0
+    # Recovery mode: on from the alarm; off once the alarm is down AND every replaced sensor agrees with its software
+    # twin again. The detector watches the EKF, which fuses the software sensors: it goes quiet while the attack is
+    # still on, and handing back on its clear alone re-fused the attack and restarted the model from a stale checkpoint.
+    held = st.active & jnp.any((st.mask > 0) & (st.disagree > 1.0))
+    active = alarm | held
+    mask = jnp.where(alarm, jnp.asarray(det.mask, jnp.float32), st.mask)
     u = traces.vehicle_controls(self.vehicle, sim)        # applied during the previous tick
-    e, rd = sim["ekf"], sim["readings"]                     # trusted while the alarm is down
+    e, rd = sim["ekf"], sim["readings"]                     # trusted while not in recovery
     s_ekf = dyn.DynState(pos=e.pos, vel=e.vel, quat=e.quat, rate=rd.gyro - e.gyro_bias)
     entry = jnp.concatenate([s_ekf.pos, s_ekf.vel, s_ekf.quat, s_ekf.rate])
-    ckpt = ck.ckpt_update(st.ckpt, entry, u, alarm)
-    rising = alarm & ~st.active
+    ckpt = ck.ckpt_update(st.ckpt, entry, u, active)
+    rising = active & ~st.active
     s_start, bias0 = model_start(self.cfg, self.params, self.fm, ckpt, self.dt)   # previous tick, from the checkpoint
     s_start = jax.tree.map(lambda a, b: jnp.where(ckpt.count > 0, a, b), s_start, s_ekf)   # nothing checkpointed
     s_base = jax.tree.map(lambda a, b: jnp.where(rising, a, b), s_start, st.model)
     bias = jnp.where(rising, bias0, st.bias)
     # states that no compromised sensor feeds stay synchronised with the EKF (attitude, body rate); position and
-    # velocity always run on the model while the alarm is up
-    m = jnp.asarray(det.mask) > 0
+    # velocity always run on the model while in recovery
+    m = mask > 0
     gyro_c, mag_c = m[SENSOR_NAMES.index("gyro")], m[SENSOR_NAMES.index("mag")]
     s_base = s_base.replace(quat=jnp.where(gyro_c | mag_c, s_base.quat, e.quat),
                             rate=jnp.where(gyro_c, s_base.rate, s_ekf.rate))
@@ -236,10 +266,30 @@ class SoftwareSensors(Estimator):
     finite = jnp.all(jnp.isfinite(jnp.concatenate(jax.tree.leaves(s_new))))
     s_new = jax.tree.map(lambda a, b: jnp.where(finite, a, b), s_new, s_ekf)   # a diverged model restarts
     pred = predicted_readings(self.fm, s_base, s_new, u, e, self.flow_min_height)
-    rd_ekf = substitute(readings, pred, det.mask, alarm)
-    model = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), s_new, s_ekf)
-    new = SSRState(ckpt=ckpt, model=model, bias=jnp.where(alarm, bias, jnp.zeros(3)), active=alarm)
+    rd_ekf = substitute(readings, pred, mask, active)
+    d, fresh = disagreement(readings, pred, self.cfg.gates)
+    a = jnp.where(fresh, min(1.0, self.dt / self.cfg.agree_tau), 0.0)
+    disagree = jnp.where(rising, jnp.maximum(d, 2.0), (1.0 - a) * st.disagree + a * d)   # starts "disagreeing"
+    model = jax.tree.map(lambda x, y: jnp.where(active, x, y), s_new, s_ekf)
+    new = SSRState(ckpt=ckpt, model=model, bias=jnp.where(active, bias, jnp.zeros(3)), active=active,
+                   mask=jnp.where(active, mask, 0.0), disagree=jnp.where(active, disagree, 0.0))
     return dict(sim, baseline=new), rd_ekf
+
+
+def disagreement(readings, pred: dict, gates: tuple):
+  """(|physical - software| / gate [6] per sensor (SENSOR_NAMES; GPS: position, mag: wrapped heading), fresh [6]:
+  the sensor delivered a new sample this tick)."""
+  diff = {"gps": jnp.linalg.norm(readings.gps_pos - pred["gps_pos"]),
+          "gyro": jnp.linalg.norm(readings.gyro - pred["gyro"]),
+          "accel": jnp.linalg.norm(readings.accel - pred["accel"]),
+          "mag": jnp.abs(jnp.mod(readings.mag_yaw - pred["mag_yaw"] + jnp.pi, 2 * jnp.pi) - jnp.pi),
+          "baro": jnp.abs(readings.baro_alt - pred["baro_alt"]),
+          "flow": jnp.linalg.norm(readings.flow - pred["flow"])}
+  fresh = {"gps": readings.gps_fresh, "mag": readings.mag_fresh, "baro": readings.baro_fresh,
+           "flow": readings.flow_fresh}
+  d = jnp.stack([diff[n] for n in SENSOR_NAMES]) / jnp.asarray(gates, jnp.float32)
+  f = jnp.stack([jnp.asarray(fresh.get(n, 1.0)) > 0 for n in SENSOR_NAMES])
+  return d, f
 
 
 def load_force_model(path: str, n_u: int) -> ForceModel:
@@ -261,10 +311,13 @@ def build(ctx):
   path = common.cache_path(ctx, "ssr", "msgpack")
   n_u = 4 if ctx.vehicle == "drone" else 2
   if not os.path.exists(path):
-    env, tr = common.flights(ctx.vehicle, tuple(ctx.worlds), ctx.train_budget, ctx.seed)
-    fm = fit_force_model(tr, ctx.vehicle, env.config.tick_dt)
+    _, tr = common.flights(ctx.vehicle, tuple(ctx.worlds), ctx.train_budget, ctx.seed)
+    n = tr["time"].shape[0]
+    _, rms_test = fit_force_model(tr, ctx.vehicle, heldout=max(1, n // 5))   # generalisation check
+    fm, _ = fit_force_model(tr, ctx.vehicle)                                  # the deployed model: all missions
     common.save_tree(path, fm, {"baseline": "ssr", "vehicle": ctx.vehicle, "budget": ctx.train_budget,
-                                "seed": ctx.seed, "rms_m_s2": np.asarray(fm.rms).tolist()})
+                                "seed": ctx.seed, "missions": n, "rms_m_s2": np.asarray(fm.rms).tolist(),
+                                "heldout_rms_m_s2": np.round(np.asarray(rms_test), 4).tolist()})
   load_force_model(path, n_u)   # validates the cache (one-line ValueError)
   return controllers.Controller("ssr", ENV_OVERRIDES + (("recovery_model", os.path.abspath(path)),),
                                 controllers.zero_policy, None,

@@ -11,22 +11,29 @@ controller directly, as in UnRocker.
 
 Training pairs: attack-free autopilot flights (common.flights), attacked offline with random Table 3 attacks on
 every sensor (overt and stealthy) and replayed through a fresh EKF (as bench/state_estimation.py); inputs x'_t of
-that EKF, targets the true x'_t; attacked ticks plus 20 % of clean ones.
+that EKF, targets the true x'_t; attacked ticks plus 20 % of clean ones. All missions x attacks replay in one
+vmapped, jitted scan (`training_pairs`); the DAE trains on the first 4/5 of the missions and its held-out denoising
+error (against the attacked input's own error) is stored in the cache's meta.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
+from specguard_jax import attacks as attacks_lib
+from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
+from specguard_jax.baselines import common
+from specguard_jax.baselines.common import adam_fit
 from specguard_jax.baselines.hooks import Estimator
 from specguard_jax.estimation import dae as dae_lib
 from specguard_jax.estimation import recon
+from specguard_jax.estimation import traces
 
 
 @dataclasses.dataclass(eq=False)
@@ -70,37 +77,108 @@ def load_dae(path: str):
   return cfg, jax.tree.map(jnp.asarray, tree)
 
 
-def training_pairs(env, tr, key, clean_frac: float = 0.2):
-  """(x_attacked [N, 15], x_true [N, 15]) from flights tr (leaves [B, T, ...]): one random attack per mission and
-  sensor/profile, onset 20-60 % into the flight."""
-  from specguard_jax import attacks as attacks_lib
-  from specguard_jax.estimation import traces
-  dt = env.config.tick_dt
-  t_end = float(tr["time"][0, -1])
-  combos = [(s, p) for s in attacks_lib.SENSOR_NAMES for p in attacks_lib.PROFILES]
+COMBOS = tuple((s, p) for s in attacks_lib.SENSOR_NAMES for p in attacks_lib.PROFILES)
 
-  @jax.jit
-  def one(trb, k):
-    xs, ys, ms = [], [], []
-    for i, (s, p) in enumerate(combos):
+
+def _replay_inputs(ekf_cfg, dt: float, ekf0, readings):
+  """x'_t [T, 15] of a fresh EKF from ekf0 over readings [T] (only the inputs leave the scan, not the covariance)."""
+  def body(s, r):
+    s = ekf_lib.ekf_step(ekf_cfg, s, r, dt)
+    return s, recon.input_vector(s, r)
+  return jax.lax.scan(body, ekf0, readings)[1]
+
+
+@functools.partial(jax.jit, static_argnames=("ekf_cfg", "dt", "stride"))
+def training_pairs(ekf_cfg, dt: float, tr, key, stride: int = 1, clean_frac: float = 0.2):
+  """Attacked inputs of flights tr (common.flights, leaves [B, T, ...]), all missions and attacks in one vmapped scan:
+  per mission one random attack per (sensor, profile) of COMBOS (C = 12), onset uniform in 20-60 % of the flight,
+  lasting to its end, applied to the recorded readings and replayed through a fresh EKF from the recorded initial
+  state. Returns (x_attacked [B, C, T', 15], x_true [B, T', 15], weight [B, C, T']) at ticks 0, stride, 2 stride, ...:
+  weight 1 on attacked ticks and on a random clean_frac of the clean ones, 0 elsewhere and where x is not finite."""
+  time = tr["time"]
+  t_end = time[0, -1]
+  b = time.shape[0]
+
+  def schedules(k):   # [C] schedules of one mission
+    out = []
+    for i, (sensor, profile) in enumerate(COMBOS):
       ka, ko = jax.random.split(jax.random.fold_in(k, i))
-      sch = attacks_lib.sample_attack(attacks_lib.AttackConfig(sensors=(s,), profiles=(p,)), ka,
-                                      jnp.asarray(t_end))
+      sch = attacks_lib.sample_attack(attacks_lib.AttackConfig(sensors=(sensor,), profiles=(profile,)), ka, t_end)
       onset = jax.random.uniform(ko, (), minval=0.2 * t_end, maxval=0.6 * t_end)
-      sch = sch.replace(onset=onset, duration=jnp.asarray(t_end))
-      rd = traces.attacked_readings(trb["readings"], sch, trb["time"])
-      ek = traces.replay_ekf(env.ekf_cfg, jax.tree.map(lambda a: a[0], trb["ekf_prev"]), rd, dt)
-      xs.append(jax.vmap(recon.input_vector)(ek, rd))
-      ys.append(jax.vmap(recon.true_input_vector)(trb["truth"]))
-      ms.append(trb["time"] >= onset)
-    return jnp.stack(xs), jnp.stack(ys), jnp.stack(ms)
+      out.append(sch.replace(onset=onset, duration=t_end))
+    return jax.tree.map(lambda *a: jnp.stack(a), *out)
 
-  b = tr["time"].shape[0]
-  out = [one(jax.tree.map(lambda a: a[i], tr), jax.random.fold_in(key, i)) for i in range(b)]
-  x, y, m = (np.concatenate([np.asarray(o[j]).reshape((-1,) + np.shape(o[j])[2:]) for o in out]) for j in range(3))
-  keep = m | (np.random.default_rng(0).random(m.shape) < clean_frac)
-  ok = keep & np.all(np.isfinite(x), -1)
-  return x[ok], y[ok]
+  k_sch, k_clean = jax.random.split(key)
+  sch = jax.vmap(schedules)(jax.random.split(k_sch, b))                                        # [B, C]
+  rd = jax.vmap(jax.vmap(traces.attacked_readings, (None, 0, None)))(tr["readings"], sch, time)   # [B, C, T]
+  x = jax.vmap(jax.vmap(functools.partial(_replay_inputs, ekf_cfg, dt), (None, 0)))(tr["ekf0"], rd)
+  x = x[:, :, ::stride]
+  y = jax.vmap(jax.vmap(recon.true_input_vector))(tr["truth"])[:, ::stride]
+  attacked = time[:, None, ::stride] >= sch.onset[:, :, None]
+  keep = attacked | (jax.random.uniform(k_clean, attacked.shape) < clean_frac)
+  return x, y, (keep & jnp.all(jnp.isfinite(x), -1)).astype(jnp.float32)
+
+
+# x'_t layout (recon.INPUT_NAMES): world-frame horizontal pairs of position, velocity, acceleration; Euler yaw
+_XY_PAIRS = ((0, 1), (3, 4), (6, 7))
+_YAW = 9 + 2
+SHIFT_M = 200.0
+
+
+def _augment(x, y, key):
+  """Turn each (attacked, true) pair's world by a random angle about z and shift it horizontally by up to SHIFT_M m
+  (both members alike): the EKF, the attacks and the DAE's job do not depend on where or which way a mission flies,
+  so the DAE must not key on the training missions' absolute positions or headings."""
+  k_a, k_d = jax.random.split(key)
+  a = jax.random.uniform(k_a, (x.shape[0],), minval=-jnp.pi, maxval=jnp.pi)
+  d = jnp.zeros_like(x).at[:, 0:2].set(jax.random.uniform(k_d, (x.shape[0], 2), minval=-SHIFT_M, maxval=SHIFT_M))
+  turn = lambda v: common.turn_about_z(v, a, _XY_PAIRS, _YAW) + d   # noqa: E731
+  return turn(x), turn(y)
+
+
+def _error(x_hat, y):
+  """x_hat - y [..., 15] with the yaw difference wrapped (the deployed attitude is periodic in the Euler angles)."""
+  e = x_hat - y
+  return e.at[..., _YAW].set(common.wrap_angle(e[..., _YAW]))
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "n_train"))
+def fit_dae(cfg: dae_lib.DAEConfig, x, y, w, key, n_train: int):
+  """Fit the DAE on training_pairs (x [B, C, T, 15], y [B, T, 15], w [B, C, T]) of the first n_train missions:
+  Adam (cosine decay) on the standardised MSE (estimation.dae.train_dae's loss, yaw error wrapped) of turned and
+  shifted minibatches (_augment). Returns (DAEParams, losses [steps], held-out dict on the other missions' weighted
+  pairs: 'loss' / 'loss_identity' (standardised MSE of the DAE / of the attacked input itself), 'pos_rmse_m',
+  'vel_rmse_m_s', 'euler_rmse_deg' and their '_identity' twins)."""
+  _, c, t, n = x.shape
+  yt = y[:n_train]
+  wf = w[:n_train].reshape(-1)
+  wt = jnp.sum(w[:n_train], 1)[..., None]          # [B, T, 1] how often truth (b, t) is a target
+  mean = jnp.sum(yt * wt, (0, 1)) / jnp.sum(wf)
+  std = jnp.sqrt(jnp.sum((yt - mean) ** 2 * wt, (0, 1)) / jnp.sum(wf)) + 1e-3
+  net = dae_lib._DAE(cfg.hidden, cfg.bottleneck, n)
+  k_init, k_fit = jax.random.split(key)
+  p0 = net.init(k_init, jnp.zeros((1, n)))
+  xf = jnp.nan_to_num(x[:n_train].reshape(-1, n))
+  yf = yt.reshape(-1, n)
+
+  def loss_fn(p, idx, k):
+    xb, yb = _augment(xf[idx], yf[(idx // (c * t)) * t + idx % t], k)   # row (b, c, t) pairs with truth (b, t)
+    x_hat = net.apply(p, (xb - mean) / std) * std + mean
+    return jnp.mean((_error(x_hat, yb) / std) ** 2)
+
+  p, losses = adam_fit(loss_fn, p0, wf, cfg.steps, cfg.batch, k_fit, cfg.lr)
+  params = dae_lib.DAEParams(net=p, mean=mean, std=std)
+  xv, yv, wv = jnp.nan_to_num(x[n_train:]), y[n_train:, None], w[n_train:]
+  wsum = jnp.maximum(jnp.sum(wv), 1.0)
+  wmean = lambda a: jnp.sum(a * wv) / wsum   # noqa: E731
+  out = {}
+  for name, xe in (("", dae_lib.dae_apply(cfg, params, xv)), ("_identity", xv)):
+    e = _error(xe, yv)
+    out["loss" + name] = wmean(jnp.mean((e / std) ** 2, -1))
+    out["pos_rmse_m" + name] = jnp.sqrt(wmean(jnp.sum(e[..., 0:3] ** 2, -1)))
+    out["vel_rmse_m_s" + name] = jnp.sqrt(wmean(jnp.sum(e[..., 3:6] ** 2, -1)))
+    out["euler_rmse_deg" + name] = jnp.degrees(jnp.sqrt(wmean(jnp.sum(e[..., 9:12] ** 2, -1))))
+  return params, losses, out
 
 
 ENV_OVERRIDES = (("control_mode", "autopilot"), ("detector", "residual"), ("detector_delay", 0.0),
@@ -116,12 +194,18 @@ def build(ctx):
     b = common.budget(ctx.train_budget)
     env, tr = common.flights(ctx.vehicle, tuple(ctx.worlds), ctx.train_budget, ctx.seed)
     key = jax.random.fold_in(jax.random.PRNGKey(ctx.seed), 0xDAE)
-    x, y = training_pairs(env, tr, key)
-    cfg = dae_lib.DAEConfig(steps=b.fit_steps, batch=min(b.batch, 1024))
-    params, loss = dae_lib.train_dae(cfg, jnp.asarray(x), jnp.asarray(y), key)
+    x, y, w = training_pairs(env.ekf_cfg, env.config.tick_dt, tr, key, stride=b.pair_stride)
+    n_missions = x.shape[0]
+    n_train = n_missions - max(1, n_missions // 5) if n_missions > 1 else 1
+    cfg = dae_lib.DAEConfig(steps=b.fit_steps, batch=b.batch)
+    params, losses, held = fit_dae(cfg, x, y, w, jax.random.fold_in(key, 1), n_train)
+    held = {k: float(f"{float(v):.4g}") for k, v in held.items()}
     common.save_tree(path, params, {"baseline": "unrocker", "vehicle": ctx.vehicle, "budget": ctx.train_budget,
                                     "seed": ctx.seed, "hidden": list(cfg.hidden), "bottleneck": cfg.bottleneck,
-                                    "pairs": int(x.shape[0]), "train_loss": float(loss)})
+                                    "pairs": int(jnp.sum(w[:n_train] > 0)), "train_missions": n_train,
+                                    "train_loss": float(jnp.mean(losses[-50:])),
+                                    "loss_curve": common.loss_curve(losses),
+                                    **{f"heldout_{k}": v for k, v in held.items()}})
   load_dae(path)
   return controllers.Controller("unrocker", ENV_OVERRIDES + (("recovery_model", os.path.abspath(path)),),
                                 controllers.zero_policy, None,
