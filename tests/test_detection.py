@@ -20,6 +20,8 @@ TARGET_FPR = 0.125      # per mission: at most 1 of the 8 held-out attack-free m
 OVERT = {"gps": [20.0, 10.0, 2.0], "gyro": [0.0, 0.0, 1.0], "accel": [0.0, 0.0, 3.0], "mag": [2.0], "baro": [8.0],
          "flow": [2.0, 0.0]}
 STEALTHY = {"gps": [30.0, 0.0, 0.0], "baro": [8.0]}
+# Horizontal accelerometer bias: the IMU-model channel (accel z) barely sees it, every aiding velocity does.
+EXTRA = {"accel/overt_h": ("accel", [1.5, 1.5, 0.0], "overt")}
 
 
 def _stack(xs):
@@ -29,11 +31,15 @@ def _stack(xs):
 @pytest.fixture(scope="module")
 def run():
   env = envs.make("drone", mission=MissionConfig.drone(max_duration_s=70.0, min_duration_s=45.0))
-  cells = ([("none", None)] * (N_CAL + N_FREE) + [(s, "overt") for s in OVERT] + [(s, "stealthy") for s in STEALTHY])
+  cells = ([("none", None)] * (N_CAL + N_FREE) + [(s, "overt") for s in OVERT] + [(s, "stealthy") for s in STEALTHY]
+           + [tuple(k.split("/")) for k in EXTRA])
   sched = []
   for s, p in cells:
     if s == "none":
       sched.append(attacks.no_attack())
+    elif f"{s}/{p}" in EXTRA:
+      sensor, bias, profile = EXTRA[f"{s}/{p}"]
+      sched.append(attacks.schedule_for(sensor, bias, ONSET, DURATION, profile))
     else:
       bias = OVERT[s] if p == "overt" else STEALTHY[s]
       sched.append(attacks.schedule_for(s, bias, ONSET, DURATION, p, ramp_time=20.0))
@@ -81,6 +87,23 @@ def test_overt_attack_detected_and_diagnosed(run, sensor):
   assert m["delay"][i] < 1.5, (sensor, m["delay"][i])
   assert m["correct"][i], (sensor, SENSOR_NAMES[int(run["out"]["diagnosis"][i][int(round((ONSET + m["delay"][i]
                                                                                                 + 1.0) / DT))])])
+
+
+def test_horizontal_accel_bias_blamed_on_the_accelerometer(run):
+  """A horizontal accelerometer bias shows in the GPS AND flow velocity innovations (the GPS agreeing with the flow):
+  the accelerometer is blamed, not the GPS (reconstruction would otherwise dead-reckon on the biased accelerometer)."""
+  i = _idx(run, "accel/overt_h")
+  m = run["m"]
+  assert m["detected"][i] and m["delay"][i] < 2.0, m["delay"][i]
+  at = int(round((ONSET + m["delay"][i] + 1.0) / DT))
+  assert m["correct"][i], SENSOR_NAMES[int(run["out"]["diagnosis"][i][at])]
+
+
+def test_stealthy_gps_ramp_blamed_on_the_gps(run):
+  """A ramping GPS spoofer (fake velocity 1.5 m/s away from the optical flow) is blamed on the GPS."""
+  i = _idx(run, "gps/stealthy")
+  m = run["m"]
+  assert m["detected"][i] and m["correct"][i], (m["detected"][i], m["delay"][i])
 
 
 @pytest.mark.parametrize("sensor", list(STEALTHY))
@@ -174,3 +197,136 @@ def test_detector_update_is_jittable_and_vmappable(run):
   st = f(st, rd, ek, act)
   assert st.scores.shape == (n, detection.N_CHANNELS) and st.alarm.shape == (n,)
   assert np.all(np.isfinite(np.asarray(st.scores)))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# diagnosis from constructed evidence (no simulation)
+
+_CH = {n: i for i, n in enumerate(detection.CHANNELS)}
+_GPS, _GYRO, _ACCEL, _MAG, _BARO, _FLOW = (SENSOR_NAMES.index(n) for n in ("gps", "gyro", "accel", "mag", "baro", "flow"))
+
+
+def _peak(**scores):
+  p = np.zeros(detection.N_CHANNELS, np.float32)
+  for name, v in scores.items():
+    p[_CH[name]] = v
+  return jnp.asarray(p)
+
+
+def _cons(chi_e=1.5, chi_m=1.5, dz=0.3, av_v=1.0, av_z=1.0):
+  return jnp.array([chi_e, chi_m, dz, av_v, av_z], jnp.float32)
+
+
+@pytest.fixture(scope="module")
+def diag_cfg():
+  return detection.DetectorConfig.drone()
+
+
+@pytest.fixture(scope="module")
+def d(diag_cfg):
+  """diagnose(peak, cons=None) -> int, compiled once per argument structure."""
+  f = jax.jit(lambda peak, cons: detection.diagnose(diag_cfg, peak, cons))
+  return lambda peak, cons=None: int(f(peak, cons))
+
+
+def test_diagnose_velocity_pattern_accel_vs_gps(d):
+  """GPS velocity innovations without a position jump: the accelerometer when the GPS agrees with flow and baro, the
+  GPS when its velocity disagrees with the flow (ramping spoofer) or its height with the baro, the GPS (as before the
+  cross-checks) when they are unavailable."""
+  vel = _peak(gps_vel_x=2.0, gps_vel_y=1.4, gps_vel_z=0.6, flow_x=0.8)
+  assert d(vel, _cons()) == _ACCEL
+  assert d(vel, _cons(chi_e=15.0, chi_m=14.0)) == _GPS
+  assert d(vel, _cons(dz=4.0)) == _GPS
+  assert d(vel, _cons(av_v=0.0, chi_e=0.0, chi_m=0.0)) == _GPS
+  assert d(vel) == _GPS
+  # a position jump is the GPS's even with consistent velocities (an overt spoof does not move the fake velocity)
+  assert d(_peak(gps_pos_x=2.0, gps_pos_y=1.2), _cons()) == _GPS
+  assert d(_peak(gps_pos_x=2.0, gps_vel_x=2.0), _cons()) == _GPS
+  # flow and GPS velocity innovations together with a consistent GPS: the accelerometer, not the flow
+  assert d(_peak(flow_x=2.0, gps_vel_y=1.0), _cons()) == _ACCEL
+  # a flow attack: the flow disagrees with the GPS
+  assert d(_peak(flow_x=2.0, flow_y=1.0), _cons(chi_e=40.0, chi_m=40.0)) == _FLOW
+
+
+def test_diagnose_vertical_gps_baro(d):
+  """A purely vertical GPS/baro disagreement is the baro's, unless the GPS velocity disagrees with the flow too."""
+  vert = _peak(gps_pos_z=1.7)
+  assert d(vert) == _BARO
+  assert d(vert, _cons(dz=4.0)) == _BARO
+  assert d(vert, _cons(chi_e=9.0, chi_m=9.0, dz=4.0)) == _GPS
+  assert d(_peak(baro=2.0, gps_pos_z=0.5), _cons(dz=8.0)) == _BARO
+
+
+def test_diagnose_heading_gyro_vs_mag(d):
+  """Heading evidence: the magnetometer when it disagrees with the GPS course over the flow, the gyro when the EKF
+  heading does (the magnetometer agreeing); IMU-model evidence with a heading disagreement is the gyro's."""
+  mag = _peak(mag=2.0)
+  assert d(mag) == _MAG
+  assert d(mag, _cons(chi_e=2.0, chi_m=60.0)) == _MAG
+  assert d(mag, _cons(chi_e=12.0, chi_m=2.0)) == _GYRO
+  assert d(_peak(mag=2.0, gps_vel_x=1.0)) == _GYRO
+  assert d(_peak(mag=2.0, gps_vel_x=1.0), _cons(chi_e=2.0, chi_m=60.0)) == _MAG
+  assert d(_peak(gps_vel_y=2.0), _cons(chi_e=9.0, chi_m=3.0)) == _GYRO
+  assert d(_peak(accel_z=0.8)) == _ACCEL
+  assert d(_peak(accel_z=0.8, mag=2.0)) == _GYRO
+  assert d(_peak(gyro_z=0.9, accel_z=0.6)) == _GYRO
+
+
+def _level_flight(n, yaw=0.5, speed=5.0, height=15.0, dv=(0.0, 0.0), dbaro=0.0, dmag=0.0, dyaw_ekf=0.0, onset=200):
+  """Constructed readings [n] of level flight along the heading `yaw` (no noise; GPS 10 Hz, flow 25 Hz, 50 Hz ticks)
+  with, from tick `onset`, a GPS velocity offset dv (world m/s), a baro offset (m), a magnetometer offset (rad), and an
+  EKF heading error (rad, as a gyro bias would leave)."""
+  from specguard_jax import ekf as ekf_lib
+  from specguard_jax.math3d import euler_to_quat
+  from specguard_jax.types import SensorReadings
+  k = np.arange(n)
+  on = (k >= onset).astype(np.float32)
+  v = speed * np.array([np.cos(yaw), np.sin(yaw), 0.0], np.float32)
+  gps_vel = v[None, :] + on[:, None] * np.array([dv[0], dv[1], 0.0], np.float32)
+  f = lambda x: jnp.asarray(x, jnp.float32)
+  rd = SensorReadings(
+      gps_pos=f(np.tile([0.0, 0.0, height], (n, 1))), gps_vel=f(gps_vel), gps_fresh=f(k % 5 == 0),
+      gyro=f(np.zeros((n, 3))), accel=f(np.tile([0.0, 0.0, 9.81], (n, 1))), mag_yaw=f(yaw + dmag * on),
+      mag_fresh=f(k % 2 == 0), baro_alt=f(height + dbaro * on), baro_fresh=f(k % 2 == 0),
+      flow=f(np.tile([speed / height, 0.0], (n, 1))), flow_fresh=f(k % 2 == 0), odom_speed=f(np.zeros(n)),
+      odom_fresh=f(np.zeros(n)))
+  e0 = ekf_lib.ekf_init(ekf_lib.EKFConfig.drone(), jax.tree.map(lambda x: x[0], rd))
+  quats = jax.vmap(lambda y: euler_to_quat(jnp.stack([0.0, 0.0, y])))(f(yaw + dyaw_ekf * on))
+  ekfs = jax.vmap(lambda q: e0.replace(quat=q))(quats)
+  return rd, ekfs
+
+
+_CASES = {"clean": {}, "gps_velocity": dict(dv=(0.8, -0.8)), "baro": dict(dbaro=8.0), "mag": dict(dmag=0.5),
+          "ekf_heading": dict(dyaw_ekf=0.5)}
+
+
+@pytest.fixture(scope="module")
+def cross_checks(diag_cfg):
+  """consistency() over the constructed flights of _CASES (one vmapped scan): {case: [T, 5]}."""
+  from specguard_jax.detection import detector as det
+  flights = [_level_flight(400, **kw) for kw in _CASES.values()]
+  rd, ekfs = jax.tree.map(lambda *x: jnp.stack(x), *flights)
+
+  def one(rd, ekfs):
+    def body(st, x):
+      out, st = det.consistency(diag_cfg, st, x[0], x[1], DT)
+      return st, out
+    return jax.lax.scan(body, det.detector_init(diag_cfg), (rd, ekfs))[1]
+
+  out = np.asarray(jax.jit(jax.vmap(one))(rd, ekfs))
+  return dict(zip(_CASES, out))
+
+
+@pytest.mark.parametrize("case", list(_CASES))
+def test_consistency_cross_checks(diag_cfg, cross_checks, case):
+  """The GPS cross-checks on constructed level flight: a GPS velocity offset fails the flow check under both headings,
+  a baro offset fails only the GPS-baro height check (the flow also scaled by the GPS height), a magnetometer offset
+  only the magnetometer-heading check, an EKF heading error only the EKF-heading check."""
+  out = cross_checks[case]
+  thr, tol = diag_cfg.cons_thr, diag_cfg.gps_baro_tol
+  before, end = out[199], out[-1]
+  assert before[3] == 1.0 and before[4] == 1.0 and before[0] < 0.5 and before[1] < 0.5 and before[2] < 0.1
+  chi_e, chi_m, dz = end[:3]
+  expect = {"clean": (False, False, False), "gps_velocity": (True, True, False), "baro": (False, False, True),
+            "mag": (False, True, False), "ekf_heading": (True, False, False)}[case]
+  assert (chi_e >= thr, chi_m >= thr, dz >= tol) == expect, end
