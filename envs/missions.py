@@ -102,8 +102,11 @@ class MissionConfig:
 
   @classmethod
   def rover(cls, **kw) -> "MissionConfig":
-    """Ground-rover missions: z = 0, 6-8 m/s, no take-off, loiter or landing, 1-5 min."""
-    base = dict(vehicle="rover", altitude=(0.0, 0.0), cruise_speed=(6.0, 8.0), p_loiter=0.0, p_land=0.0)
+    """Ground-rover missions: z = 0, 6-8 m/s, no take-off, loiter or landing, 1-5 min; waypoints accepted within
+    2 m (ArduRover's WP_RADIUS default; the rover stops where the last one is accepted, so a 5 m radius would leave
+    it on the edge of the paper's 5 m recovery-success radius)."""
+    base = dict(vehicle="rover", altitude=(0.0, 0.0), cruise_speed=(6.0, 8.0), p_loiter=0.0, p_land=0.0,
+                acceptance_radius=2.0)
     base.update(kw)
     return cls(**base)
 
