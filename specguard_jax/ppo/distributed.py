@@ -9,7 +9,8 @@ device count: the same G on 1 and on N devices gives the same result up to float
 
 Multi-host: `initialize()` calls `jax.distributed.initialize` (flags, or JAX's own env vars / cluster detection);
 `jax.devices()` is then every process's devices and the mesh spans them all; only process 0 logs and exports, Orbax
-checkpoints are written collectively.
+checkpoints are written collectively, and host decisions (checkpoint now, stop) are OR-ed over the processes
+(`any_process`). Nothing a compiled phase closes over may live on another process's device (`local_constants`).
 """
 
 from __future__ import annotations
@@ -92,6 +93,48 @@ def replicate(tree, mesh: Mesh):
   return jax.tree.map(one, tree)
 
 
+def local_constants(env):
+  """Re-place the env's MJX model on this process's first local device and return env (changed in place).
+
+  mjx.put_model puts the model on jax.devices()[0]: in a multi-process run that is process 0's device, so on every
+  other process the compiled phases would close over arrays on a non-addressable device and their trace fails
+  ("Closing over jax.Array that spans non-addressable devices"; process 0 then waits forever in the first
+  collective). The model stays a jax.Array pytree (the envs update fields with .at[] for domain randomisation);
+  every process builds it from the same MjModel, so the values agree."""
+  base = env
+  while not hasattr(base, "mj_model") and hasattr(base, "env"):
+    base = base.env
+  if hasattr(base, "mj_model") and jax.process_count() > 1:
+    from mujoco import mjx
+    base.mjx_model = mjx.put_model(base.mj_model, device=jax.local_devices()[0])
+  return env
+
+
 def to_host(tree):
-  """Replicated (or process-addressable) global arrays -> numpy."""
-  return jax.tree.map(np.asarray, tree)
+  """Global arrays -> numpy (the whole array on every process). Replicated or process-local arrays are read
+  locally; an array sharded over several processes (a sweep's member axis) is gathered, a collective that every
+  process must call."""
+  def one(x):
+    if not isinstance(x, jax.Array) or x.is_fully_addressable or x.is_fully_replicated:
+      return np.asarray(x)
+    from jax.experimental import multihost_utils
+    return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+  return jax.tree.map(one, tree)
+
+
+def any_process(*flags: bool) -> tuple:
+  """Each flag OR-ed over all processes (identity in a single-process run). Host decisions taken from a process's
+  own clock or signals (checkpoint now, stop now) must agree, or the collective checkpoint save waits forever."""
+  if jax.process_count() == 1:
+    return tuple(bool(f) for f in flags)
+  from jax.experimental import multihost_utils
+  v = multihost_utils.process_allgather(np.asarray(flags, np.int32))   # [processes, n]
+  return tuple(bool(f) for f in np.asarray(v).reshape(jax.process_count(), len(flags)).any(axis=0))
+
+
+def barrier(name: str):
+  """Wait until every process reached `name` (no-op in a single-process run): the other processes wait for
+  process 0's export and held-out evaluation before they leave train() and shut jax.distributed down."""
+  if jax.process_count() > 1:
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices(name)

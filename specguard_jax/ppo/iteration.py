@@ -20,6 +20,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import State
 from brax.envs.wrappers.training import VmapWrapper
 from flax import struct
@@ -47,10 +48,11 @@ def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv)."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual)
   if phase == 1:
-    return envs_lib.make(cfg.vehicle, control_mode="override", **common)
+    return distributed.local_constants(envs_lib.make(cfg.vehicle, control_mode="override", **common))
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
                       detector=cfg.detector, detector_delay=cfg.detector_delay,
                       reconstruction=cfg.reconstruction, **common)
+  distributed.local_constants(env)   # multi-process: no closed-over arrays on another process's device
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
@@ -113,7 +115,13 @@ def make_phase(cfg: TrainConfig, phase: int, mesh=None, members: int = 0) -> Pha
   (ppo/distributed.py). members > 0: a sweep phase: init and run are vmapped over a leading member axis, which is
   the one sharded over the mesh (each member's envs stay on one device)."""
   mesh = mesh if mesh is not None else distributed.make_mesh(cfg.num_devices)
-  return _make_phase(program_config(cfg), phase, mesh, members)
+  pc = program_config(cfg)
+  key = pc
+  if pc.sg.lr_schedule == "constant" and pc.aa.lr_schedule == "constant":
+    # The step budgets only size the step-size schedules: with constant ones they are host-side iteration counts,
+    # so e.g. a phase-2-only run (phase1_steps=0) shares phase 2's compiled programs with a full run.
+    key = dataclasses.replace(pc, phase1_steps=0, phase2_steps=0)
+  return dataclasses.replace(_make_phase(key, phase, mesh, members), cfg=pc, iterations=_iterations(pc, phase))
 
 
 @functools.lru_cache(maxsize=8)
@@ -141,7 +149,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   sg, aa = make_agents(cfg)
   adversarial = phase == 2
   base = env.env if adversarial else env
-  crit = jnp.asarray(base.spec_table.critical)   # critical specs (S1, S2, S12 by default) of the env's table
+  crit = np.asarray(base.spec_table.critical)    # critical specs (S1, S2, S12 by default) of the env's table
   gamma = cfg.sg.gamma
   bonus = (-cfg.completion_bonus / (1.0 - gamma)) if cfg.completion_bonus < 0 else cfg.completion_bonus
   rc = adversarial and cfg.variant == "rc"

@@ -247,7 +247,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
       while int(carry.iteration) < total_calls * cfg.iters_per_call:
         tc = time.time()
         carry, m = phase.run(carry)
-        m = jax.device_get(m)
+        m = distributed.to_host(m)
         dt = time.time() - tc
         host["calls"] += 1
         calls_here += 1
@@ -279,7 +279,10 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
           log(f"\n[train] phase 2 converged at iteration {it_end} (|d return / d iter| < {cfg.converge_eps})")
           break
         interrupted = stop["flag"] or (stop_after_calls is not None and calls_here >= stop_after_calls)
-        if interrupted or time.time() - last_ckpt >= cfg.checkpoint_every_s:
+        # Every process must take the same decision (the save is collective): OR-ed over the processes.
+        interrupted, save_now = distributed.any_process(interrupted,
+                                                        time.time() - last_ckpt >= cfg.checkpoint_every_s)
+        if interrupted or save_now:
           _save(mgr, carry, host)
           last_ckpt = time.time()
         if interrupted:
@@ -308,6 +311,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
                "devices": mesh.size, "processes": jax.process_count(), "env_groups": cfg.env_groups,
                "date": time.strftime("%Y-%m-%d")}
     if not main:
+      distributed.barrier("specguard_train_end")   # wait for process 0's export and evaluation
       return summary
     if export:
       summary["export"] = export_policy(cfg, run_dir, sg_state)
@@ -319,6 +323,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
           f"{k} SVR {v['svr']:.3f} RSR {v['rsr']:.3f}" for k, v in summary["heldout"].items() if k[0] != "_"))
     with open(os.path.join(run_dir, "summary.json"), "w") as f:
       json.dump(summary, f, indent=1, default=float)
+    distributed.barrier("specguard_train_end")
     return summary
   finally:
     for s, h in old_handlers.items():
@@ -413,7 +418,7 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
       for call in range(calls):
         tc = time.time()
         carry, m = phase.run(carry)
-        m = jax.device_get(m)
+        m = distributed.to_host(m)   # [S, K] (gathered where the members span processes)
         dt = time.time() - tc
         wall += dt
         compile_s.setdefault(str(number), dt)
@@ -451,6 +456,7 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
           json.dump(summ, f, indent=1, default=float)
       summ["sg_state"] = sg_s
       summaries.append(summ)
+    distributed.barrier("specguard_sweep_end")   # the other processes wait for process 0's exports
     return summaries
   finally:
     for lg in loggers:
