@@ -7,7 +7,8 @@ MJX).
 
 Table columns: n missions; TPR = alarm raised while the attack is on (and none before it); FPR = missions with an
 alarm before the onset (the attack-free row: anywhere); delay = s from onset to the first alarm (median, p90);
-diag = diagnosis on the first alarm (after the diagnosis window) names the attacked sensor, among detected missions.
+diag = diagnosis on the first alarm (after the diagnosis window) names the attacked sensor, among detected missions;
+the confusion table below it counts, per row, the sensor blamed on those missions (SENSOR_NAMES columns).
 Attack magnitudes are drawn from the paper's Table 3 ranges (specguard_jax.attacks.BIAS_RANGES), random direction.
 
   JAX_PLATFORMS=cpu python bench/detection.py --stealthy 10         # designed stealthy ramps (attacks.stealthy)
@@ -31,6 +32,7 @@ from envs.missions import MissionConfig
 from specguard_jax import attacks
 from specguard_jax.detection import detector as det
 from specguard_jax.detection import traces
+from specguard_jax.types import SENSOR_NAMES
 
 SENSORS = {"drone": ("gps", "gyro", "accel", "mag", "baro", "flow"),
            "rover": ("gps", "gyro", "accel", "mag", "baro")}
@@ -103,13 +105,24 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
            "tpr": float("nan") if s == "none" else float(np.mean(det_)),
            "delay_med": float(np.median(delay)) if delay.size else float("nan"),
            "delay_p90": float(np.percentile(delay, 90)) if delay.size else float("nan"),
-           "diag": float(np.mean(m["correct"][sl][det_])) if det_.any() else float("nan")}
+           "diag": float(np.mean(m["correct"][sl][det_])) if det_.any() else float("nan"),
+           "blamed": blamed_counts(out["alarm"][sl], out["diagnosis"][sl], tr.valid[sl], det_, win)}
     rows.append(row)
   if verbose:
     print(f"{n} test missions in {time.time() - t0:.1f} s total; onset {onset:.0f} s, duration {duration:.0f} s, "
           f"target FPR {target_fpr:.2f}/mission")
     print(format_table(rows))
+    print(format_confusion(rows))
   return rows, cfg
+
+
+def blamed_counts(alarm, diagnosis, valid, detected, win: int):
+  """[N_SENSORS] how often each sensor is blamed win ticks after the first alarm, over the `detected` missions."""
+  alarm, diagnosis, valid, detected = (np.asarray(x) for x in (alarm, diagnosis, valid, detected))
+  first = np.argmax(alarm & valid, axis=-1)
+  at = np.minimum(first + win, alarm.shape[-1] - 1)
+  d = np.take_along_axis(diagnosis, at[:, None], axis=-1)[:, 0]
+  return np.bincount(d[detected & (d >= 0)], minlength=len(SENSOR_NAMES)).astype(int)
 
 
 STEALTHY_BIAS = {"drone": {"gps": [30.0, 0.0, 0.0], "baro": [-8.0], "mag": [float(np.pi / 2)], "flow": [1.0, 0.0],
@@ -174,6 +187,15 @@ def format_table(rows) -> str:
   for r in rows:
     lines.append(f"{r['sensor']:7s} {r['profile']:9s} {r['n']:4d} {f(r['tpr']):>5s} {f(r['fpr']):>5s} "
                  f"{f(r['delay_med'], 2):>9s} {f(r['delay_p90'], 2):>9s} {f(r['diag']):>5s}")
+  return "\n".join(lines)
+
+
+def format_confusion(rows) -> str:
+  """Sensor blamed (columns) per attacked sensor/profile (rows), counts over the detected missions."""
+  lines = [f"{'blamed:':17s} " + " ".join(f"{n:>5s}" for n in SENSOR_NAMES)]
+  for r in rows:
+    if r["sensor"] != "none":
+      lines.append(f"{r['sensor'] + ' ' + r['profile']:17s} " + " ".join(f"{c:5d}" for c in r["blamed"]))
   return "\n".join(lines)
 
 

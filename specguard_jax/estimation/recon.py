@@ -14,7 +14,9 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
   * a compromised gyroscope is replaced by the model's body rate, integrated from the predicted angular acceleration
     (rotor-thrust torques), which the shadow EKF then corrects with the remaining aiding (GPS velocity, mag, flow)
     through its attitude / gyro-bias states;
-  * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag).
+  * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag); the
+    shadow's accel-bias state then restarts and tracks the model's error (mass / thrust-gain uncertainty, larger
+    clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back.
 Selective output: only the components of x'_t that derive from a compromised sensor (SENSOR_DEPS) are replaced by
 the shadow estimate; the rest stays as measured (EKF). Everything is pure JAX, jittable and vmappable.
 """
@@ -85,11 +87,17 @@ class ReconConfig:
   ekf: Any = None
   model_rate_noise: float = 0.3   # rad/s^2/sqrt(Hz): random walk of the model-rate error (shadow gyro-bias state)
   model_rate_limit: float = 3.0   # rad/s: clamp of that state
+  # With the accelerometer replaced by the model's specific force, the shadow's accel-bias state tracks the model's
+  # error (mass and thrust-gain uncertainty: up to ~2 m/s^2 vertically), not the sensor's bias:
+  model_accel_sigma: float = 1.0  # m/s^2: its standard deviation when the accelerometer is (newly) replaced
+  model_accel_noise: float = 0.05  # m/s^3/sqrt(Hz): its random walk while replaced
+  model_accel_limit: float = 3.0  # m/s^2: clamp of the shadow's accel-bias state
   consistency_sigma: float = 3.0  # a compromised aiding sensor further than this (innovation sigmas) from the shadow
                                   # estimate is still under attack: `suspect` (holds the recovery switch)
 
   def ekf_cfg(self):
-    return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit)
+    return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
+                               accel_bias_limit=self.model_accel_limit)
 
 
 @struct.dataclass
@@ -98,13 +106,15 @@ class ReconState:
   rate: [3] model body rate (rad/s).  active: [] bool, reconstruction running (alarm up).
   since: [] s since the alarm rose (0 while inactive).  suspect: [] bool, a compromised GPS / baro / magnetometer /
   optical-flow reading disagrees with the shadow estimate by more than `consistency_sigma` (latest fresh sample;
-  False while inactive): the attack is still on, so the recovery switch must not hand control back yet."""
+  False while inactive): the attack is still on, so the recovery switch must not hand control back yet.
+  blamed: [6] 0/1 the compromised mask of the last tick (zeros while inactive)."""
   ckpt: ck.CheckpointState
   shadow: Any
   rate: jnp.ndarray
   active: jnp.ndarray
   since: jnp.ndarray
   suspect: jnp.ndarray
+  blamed: jnp.ndarray
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
@@ -129,7 +139,8 @@ def _entry(ekf_state, readings):
 def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
   """Empty checkpoint, inactive; `ekf_state` is a template for the shadow filter (e.g. the env's initial EKF)."""
   return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
-                    active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool))
+                    active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool),
+                    blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32))
 
 
 def dependent_components(compromised_mask) -> jax.Array:
@@ -176,8 +187,10 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   Returns (new ReconState, x_reconstructed [15] (INPUT_NAMES), trusted EKFState, trusted SensorReadings): with the
   alarm down x_reconstructed = x'_t measured and the trusted estimate/readings are the inputs; with it up they are
   the shadow filter and the readings it fused (compromised gyro/accel replaced by the model), which a controller can
-  fly on (DeLorean: the autopilot runs on reconstructed states). On the tick the alarm falls (hand-back) they are
-  still the shadow's, for the caller to re-sync the autopilot's EKF to (envs/base.py does).
+  fly on (DeLorean: the autopilot runs on reconstructed states). On the tick the alarm falls (hand-back) the
+  estimate is still the shadow's, for the caller to re-sync the autopilot's EKF to (envs/base.py does), with the
+  bias states of a replaced gyro/accelerometer back at their last trusted (pre-alarm) values, and the readings are the
+  sensors' again.
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
@@ -187,13 +200,17 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   shadow0, rate0 = _start(cfg, params, state, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
   rate = jnp.where(rising, rate0, state.rate)
+  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
+  # A newly replaced accelerometer: the accel-bias state restarts (zero, model_accel_sigma) to learn the model's error.
+  new_accel = mask[ai] & ~(state.blamed[ai] > 0)
+  shadow = shadow.replace(accel_bias=jnp.where(new_accel, 0.0, shadow.accel_bias),
+                          P=ekf_lib._reset_block(shadow.P, [12, 13, 14], cfg.model_accel_sigma ** 2, new_accel))
 
   # model-predicted rate and specific force for this tick
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
   _, alpha = dyn.derivatives(params, s, controls)
   f_b = dyn.specific_force(params, s, controls)
   rate_new = rate + alpha * dt
-  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
   gps, mag, baro, flow = (mask[SENSOR_NAMES.index(n)] for n in ("gps", "mag", "baro", "flow"))
   zero = jnp.zeros(())
   rd = readings.replace(
@@ -201,9 +218,11 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
       accel=jnp.where(mask[ai], f_b + shadow.accel_bias, readings.accel),
       gps_fresh=jnp.where(gps, zero, readings.gps_fresh), mag_fresh=jnp.where(mag, zero, readings.mag_fresh),
       baro_fresh=jnp.where(baro, zero, readings.baro_fresh), flow_fresh=jnp.where(flow, zero, readings.flow_fresh))
-  # With a model gyro the shadow's gyro-bias state tracks the model-rate error: inflate its process noise.
+  # With a model gyro / accelerometer the shadow's gyro- / accel-bias state tracks the model's error: inflate its
+  # process noise (the accel-bias state restarts when the accelerometer is newly replaced, above).
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
-  shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q)))
+  qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
+  shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)))
   shadow = ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
@@ -224,13 +243,23 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # so the autopilot does not resume on a filter that fused the attack); its gating timers start afresh.
   on = alarm | falling
   zero = jnp.zeros(())
+  # A replaced gyro / accelerometer comes back on the hand-back tick: its bias states return to the last trusted
+  # (pre-alarm) estimate with their initial uncertainty (the shadow's described the model's error, not the sensor's).
+  e = _unpack(ck.ckpt_get(state.ckpt, cfg.window - 1)[0])   # oldest trusted entry
+  back_g, back_a = falling & (state.blamed[gi] > 0), falling & (state.blamed[ai] > 0)
+  ecfg = cfg.ekf_cfg()
+  p_back = ekf_lib._reset_block(shadow.P, [9, 10, 11], ecfg.init_gyro_bias_sigma ** 2, back_g)
+  p_back = ekf_lib._reset_block(p_back, [12, 13, 14], ecfg.init_accel_bias_sigma ** 2, back_a)
   shadow_out = shadow.replace(gps_pos_age=jnp.where(falling, zero, shadow.gps_pos_age),
                               gps_vel_age=jnp.where(falling, zero, shadow.gps_vel_age),
-                              hgt_age=jnp.where(falling, zero, shadow.hgt_age))
+                              hgt_age=jnp.where(falling, zero, shadow.hgt_age),
+                              gyro_bias=jnp.where(back_g, e["gyro_bias"], shadow.gyro_bias),
+                              accel_bias=jnp.where(back_a, e["accel_bias"], shadow.accel_bias), P=p_back)
   trusted = jax.tree.map(lambda a, b: jnp.where(on, a, b), shadow_out, ekf_state)
-  trusted_rd = jax.tree.map(lambda a, b: jnp.where(on, a, b), rd, readings)
+  trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)   # sensors back on hand-back
   new = ReconState(ckpt=ckpt, shadow=trusted, rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
-                   since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect)
+                   since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
+                   blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0))
   return new, x_rec, trusted, trusted_rd
 
 
