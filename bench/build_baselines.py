@@ -51,6 +51,11 @@ def main(argv=None) -> dict:
   res = {"device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(), "jax": jax.__version__,
          "budget": args.budget, "budget_sizes": common.budget_summary(args.budget), "vehicle": args.vehicle,
          "seed": args.seed, "out": os.path.abspath(args.out), "wall_s": {}, "cpu_s": {}, "meta": {}}
+  if "ftc" in names:
+    from specguard_jax.baselines import ftc
+    fc = ftc.train_config(ctx)
+    res["ftc_sizes"] = {"num_envs": fc.num_envs, "unroll_length": fc.unroll_length,
+                        "phase1_steps": fc.phase1_steps, "phase2_steps": fc.phase2_steps}
   t_all, c_all = time.time(), time.process_time()
   need_flights = any(n != "ftc" and not os.path.exists(common.cache_path(ctx, n, "msgpack")) for n in names)
   if need_flights:

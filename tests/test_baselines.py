@@ -1,6 +1,6 @@
 """Prior-work baselines (specguard_jax.baselines): each builds at train_budget='ci' with our code and flies short
 missions with and without an attack; SSR's software-sensor GPS tracks the truth under a GPS spoof and its force model
-generalises; PID-Piper and UnRocker beat trivial predictors on held-out missions; the vectorised attacked replays;
+generalises; PID-Piper and UnRocker beat trivial predictors on held-out missions;
 the survival reward; corrupt caches are one-line errors.
 FTC trains with the PPO trainer (~3 min on 2 CPU cores): set BASELINES_FTC=1 to run its build-and-fly test."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from specguard_jax import attacks, controllers
-from specguard_jax.baselines import common, pid_piper
+from specguard_jax.baselines import common
 
 ONSET, BIAS, SECONDS = 8.0, 20.0, 14.0
 
@@ -39,6 +39,7 @@ def fly(c: controllers.Controller, n_steps: int):
              "alarm": s.info["alarm"], "time": s.info["time"]}
       if "baseline" in sim and hasattr(sim["baseline"], "model"):
         out["model"] = sim["baseline"].model.pos
+        out["active"] = sim["baseline"].active
       return s, out
     return jax.lax.scan(body, s0, None, length=n_steps)
 
@@ -73,6 +74,12 @@ def test_ssr_software_gps_tracks_truth_under_spoof(ssr_flight):
   err_gps = np.linalg.norm((tr["gps"][:, 1] - tr["true"][:, 1])[:, :2], axis=-1)[win]
   assert np.median(err_sw) < 3.0, np.median(err_sw)     # software sensor: near the truth
   assert np.median(err_gps) > 15.0                      # the spoofed GPS it replaces
+  # recovery holds under the sustained spoof (the EKF-watching detector may go quiet) and the software GPS drifts
+  # smoothly: no restart from a stale checkpoint (that jumped it back ~20-30 m)
+  after = t > rise + 0.05     # the step after the alarm's (SSR acts from the tick after the detector's)
+  assert np.all(tr["active"][after, 1]), tr["active"][after, 1]
+  e = (tr["model"][after, 1] - tr["true"][after, 1])[:, :2]
+  assert np.max(np.linalg.norm(np.diff(e, axis=0), axis=-1)) < 2.0
 
 
 def test_ssr_force_model_generalises(ssr_flight, ctx):
@@ -98,26 +105,15 @@ def test_pid_piper_generalises_and_flies(ctx):
 def test_unrocker_denoises_heldout_and_flies(ctx):
   c = controllers.build("unrocker", ctx)
   _, meta = common.load_tree(common.cache_path(ctx, "unrocker", "msgpack"))
-  # held-out missions' attacked replays: the DAE output is closer to the truth than its attacked input
+  # the vectorised attacked replays (12 attacks per mission) move the replayed EKF far off the truth ...
+  assert meta["heldout_pos_rmse_m_identity"] > 3.0 and meta["pairs"] > 5e4, meta
+  # ... and on held-out missions the DAE output is closer to the truth than its attacked input
   assert meta["heldout_loss"] < 0.7 * meta["heldout_loss_identity"], meta
+  assert meta["heldout_vel_rmse_m_s"] < meta["heldout_vel_rmse_m_s_identity"], meta
   assert meta["loss_curve"][-1] < 0.2 * meta["loss_curve"][0], meta
   tr = fly(c, int(SECONDS / 0.1))
   assert all(np.all(np.isfinite(v)) for v in tr.values())
   assert (tr["alarm"][:, 1] > 0).any()
-
-
-def test_training_pairs_attack_every_combo(ctx):
-  from specguard_jax.baselines import unrocker
-  env, tr = common.flights("drone", tuple(ctx.worlds), ctx.train_budget, ctx.seed)   # memoised: the builds' flights
-  x, y, w = unrocker.training_pairs(env.ekf_cfg, env.config.tick_dt, tr, jax.random.PRNGKey(1))   # compiled by build
-  b, t = tr["time"].shape
-  assert x.shape == (b, len(unrocker.COMBOS), t, 15) and y.shape == (b, t, 15) and w.shape == x.shape[:3]
-  err = np.abs(np.asarray(x) - np.asarray(y)[:, None])
-  late = slice(int(0.8 * t), None)                     # every attack is on by 60 % of the flight
-  gps = [i for i, (s, _) in enumerate(unrocker.COMBOS) if s == "gps"]
-  assert np.all(np.asarray(w)[:, :, late] == 1.0)
-  assert np.median(err[:, gps, late, 0:3]) > 1.0      # spoofed GPS moves the replayed EKF's position
-  assert np.median(err[:, :, : int(0.15 * t), 0:3]) < 1.0   # before any onset: the attack-free EKF
 
 
 @pytest.mark.skipif(not os.environ.get("BASELINES_FTC"), reason="FTC trains with PPO (~3 min): BASELINES_FTC=1")

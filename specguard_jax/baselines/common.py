@@ -146,20 +146,21 @@ def flights(vehicle: str, worlds: tuple, budget_name: str, seed: int):
   return env, jax.block_until_ready(tr)
 
 
-def adam_fit(loss_fn, params, weights, steps: int, batch: int, key, lr: float):
+def adam_fit(loss_fn, params, mask, steps: int, batch: int, key, lr: float):
   """Minimise loss_fn(params, idx [batch] int32, key) with Adam (cosine decay to 5 % of lr) over `steps` minibatches
-  of row indices drawn with replacement in proportion to weights [N] >= 0 (jittable; call inside jit).
-  Returns (params, losses [steps])."""
+  of row indices drawn uniformly, with replacement, from the rows where mask [N] (bool or 0/1) is set (jittable; call
+  inside jit; O(batch) per step: the selected rows are listed once). Returns (params, losses [steps])."""
   import optax
   opt = optax.adam(optax.cosine_decay_schedule(lr, steps, 0.05))
-  cdf = jnp.cumsum(weights.astype(jnp.float32))
-  n = weights.shape[0]
+  on = jnp.asarray(mask) > 0
+  rows = jnp.nonzero(on, size=on.shape[0], fill_value=0)[0].astype(jnp.int32)
+  count = jnp.maximum(jnp.sum(on), 1)
 
   def body(carry, k):
     p, st = carry
     k_idx, k_loss = jax.random.split(k)
-    idx = jnp.searchsorted(cdf, jax.random.uniform(k_idx, (batch,)) * cdf[-1], side="right")
-    loss, g = jax.value_and_grad(loss_fn)(p, jnp.minimum(idx, n - 1).astype(jnp.int32), k_loss)
+    idx = rows[jax.random.randint(k_idx, (batch,), 0, count)]
+    loss, g = jax.value_and_grad(loss_fn)(p, idx, k_loss)
     upd, st = opt.update(g, st, p)
     return (optax.apply_updates(p, upd), st), loss
 
@@ -191,8 +192,8 @@ def loss_curve(losses, points: int = 10) -> list:
 
 @functools.partial(jax.jit, static_argnames=("hidden", "steps", "batch", "augment"))
 def fit_mlp(x, y, w, hidden: tuple, steps: int, batch: int, key, lr: float = 1e-3, augment=None):
-  """Supervised MLP (flax + optax Adam, cosine decay) on standardised inputs: minimises sum_j w (f(x) - y)^2 / sum w.
-  x [N, n], y [N, m], w [N] >= 0; augment (hashable, optional): (x [b, n], y [b, m], key) -> (x, y) applied to each
+  """Supervised MLP (flax + optax Adam, cosine decay) on standardised inputs: minimises the mean (f(x) - y)^2 over
+  the rows where w is set. x [N, n], y [N, m], w [N] 0/1 mask; augment (hashable, optional): (x [b, n], y [b, m], key) -> (x, y) applied to each
   minibatch. Returns (params {'net', 'x_mean', 'x_std', 'y_scale'} for `mlp_apply`, losses [steps])."""
   x_mean, x_std = jnp.mean(x, 0), jnp.std(x, 0) + 1e-3
   y_scale = jnp.std(y, 0) + 1e-3

@@ -33,7 +33,6 @@ from specguard_jax.baselines.common import adam_fit
 from specguard_jax.baselines.hooks import Estimator
 from specguard_jax.estimation import dae as dae_lib
 from specguard_jax.estimation import recon
-from specguard_jax.estimation import traces
 
 
 @dataclasses.dataclass(eq=False)
@@ -80,24 +79,19 @@ def load_dae(path: str):
 COMBOS = tuple((s, p) for s in attacks_lib.SENSOR_NAMES for p in attacks_lib.PROFILES)
 
 
-def _replay_inputs(ekf_cfg, dt: float, ekf0, readings):
-  """x'_t [T, 15] of a fresh EKF from ekf0 over readings [T] (only the inputs leave the scan, not the covariance)."""
-  def body(s, r):
-    s = ekf_lib.ekf_step(ekf_cfg, s, r, dt)
-    return s, recon.input_vector(s, r)
-  return jax.lax.scan(body, ekf0, readings)[1]
-
-
 @functools.partial(jax.jit, static_argnames=("ekf_cfg", "dt", "stride"))
 def training_pairs(ekf_cfg, dt: float, tr, key, stride: int = 1, clean_frac: float = 0.2):
-  """Attacked inputs of flights tr (common.flights, leaves [B, T, ...]), all missions and attacks in one vmapped scan:
-  per mission one random attack per (sensor, profile) of COMBOS (C = 12), onset uniform in 20-60 % of the flight,
-  lasting to its end, applied to the recorded readings and replayed through a fresh EKF from the recorded initial
-  state. Returns (x_attacked [B, C, T', 15], x_true [B, T', 15], weight [B, C, T']) at ticks 0, stride, 2 stride, ...:
-  weight 1 on attacked ticks and on a random clean_frac of the clean ones, 0 elsewhere and where x is not finite."""
+  """Attacked inputs of flights tr (common.flights, leaves [B, T, ...]), all missions and attacks in one scan over
+  the ticks (each tick: the B x C attacked readings and EKF updates, vmapped): per mission one random attack per
+  (sensor, profile) of COMBOS (C = 12), onset uniform in 20-60 % of the flight, lasting to its end, applied to the
+  recorded readings and replayed through a fresh EKF from the recorded initial state (only x'_t leaves the scan, not
+  the covariance or the attacked readings). Returns (x_attacked [B, C, T', 15], x_true [B, T', 15], weight
+  [B, C, T']) at ticks 0, stride, 2 stride, ... (T' = T // stride): weight 1 on attacked ticks and on a random
+  clean_frac of the clean ones, 0 elsewhere and where x is not finite."""
   time = tr["time"]
   t_end = time[0, -1]
-  b = time.shape[0]
+  b, t = time.shape
+  n = t // stride
 
   def schedules(k):   # [C] schedules of one mission
     out = []
@@ -109,12 +103,28 @@ def training_pairs(ekf_cfg, dt: float, tr, key, stride: int = 1, clean_frac: flo
     return jax.tree.map(lambda *a: jnp.stack(a), *out)
 
   k_sch, k_clean = jax.random.split(key)
-  sch = jax.vmap(schedules)(jax.random.split(k_sch, b))                                        # [B, C]
-  rd = jax.vmap(jax.vmap(traces.attacked_readings, (None, 0, None)))(tr["readings"], sch, time)   # [B, C, T]
-  x = jax.vmap(jax.vmap(functools.partial(_replay_inputs, ekf_cfg, dt), (None, 0)))(tr["ekf0"], rd)
-  x = x[:, :, ::stride]
-  y = jax.vmap(jax.vmap(recon.true_input_vector))(tr["truth"])[:, ::stride]
-  attacked = time[:, None, ::stride] >= sch.onset[:, :, None]
+  sch = jax.vmap(schedules)(jax.random.split(k_sch, b))                                       # [B, C]
+  ekf0 = jax.tree.map(lambda a: jnp.repeat(a[:, None], len(COMBOS), 1), tr["ekf0"])          # [B, C]
+  attack = jax.vmap(jax.vmap(attacks_lib.apply_attack, (None, 0, None)))                     # [B] x [B, C] -> [B, C]
+  update = jax.vmap(jax.vmap(lambda s, r: ekf_lib.ekf_step(ekf_cfg, s, r, dt)))
+  inputs = jax.vmap(jax.vmap(recon.input_vector))
+
+  def tick(ekf, xs):
+    rd, tm = xs
+    rd = attack(rd, sch, tm)
+    ekf = update(ekf, rd)
+    return ekf, inputs(ekf, rd)
+
+  def chunk(ekf, xs):   # stride ticks; x'_t of the first leaves
+    ekf, x = jax.lax.scan(tick, ekf, xs)
+    return ekf, x[0]
+
+  by_time = jax.tree.map(lambda a: jnp.swapaxes(a[:, :n * stride], 0, 1).reshape((n, stride, b) + a.shape[2:]),
+                         (tr["readings"], time))
+  _, x = jax.lax.scan(chunk, ekf0, by_time)                                                  # [T', B, C, 15]
+  x = jnp.moveaxis(x, 0, 2)
+  y = jax.vmap(jax.vmap(recon.true_input_vector))(tr["truth"])[:, :n * stride:stride]
+  attacked = time[:, None, :n * stride:stride] >= sch.onset[:, :, None]
   keep = attacked | (jax.random.uniform(k_clean, attacked.shape) < clean_frac)
   return x, y, (keep & jnp.all(jnp.isfinite(x), -1)).astype(jnp.float32)
 
