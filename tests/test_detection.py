@@ -1,4 +1,5 @@
-"""Residual CUSUM detector on real env ticks: false positives, overt/stealthy detection and diagnosis, oracle, switch."""
+"""Residual CUSUM detector on real env ticks: false positives, overt/stealthy detection and diagnosis, oracle, switch;
+diagnosis rules on constructed evidence and the GPS cross-checks on constructed flights."""
 
 import jax
 import jax.numpy as jnp
@@ -303,15 +304,14 @@ _CASES = {"clean": {}, "gps_velocity": dict(dv=(0.8, -0.8)), "baro": dict(dbaro=
 @pytest.fixture(scope="module")
 def cross_checks(diag_cfg):
   """consistency() over the constructed flights of _CASES (one vmapped scan): {case: [T, 5]}."""
-  from specguard_jax.detection import detector as det
   flights = [_level_flight(400, **kw) for kw in _CASES.values()]
   rd, ekfs = jax.tree.map(lambda *x: jnp.stack(x), *flights)
 
   def one(rd, ekfs):
     def body(st, x):
-      out, st = det.consistency(diag_cfg, st, x[0], x[1], DT)
+      out, st = detection.consistency(diag_cfg, st, x[0], x[1], DT)
       return st, out
-    return jax.lax.scan(body, det.detector_init(diag_cfg), (rd, ekfs))[1]
+    return jax.lax.scan(body, detection.detector_init(diag_cfg), (rd, ekfs))[1]
 
   out = np.asarray(jax.jit(jax.vmap(one))(rd, ekfs))
   return dict(zip(_CASES, out))
