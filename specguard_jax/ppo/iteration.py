@@ -296,11 +296,17 @@ class DeterministicPolicy:
 
 
 def eval_env(cfg: TrainConfig):
-  """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator)."""
-  return envs_lib.make(cfg.vehicle, worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body",
-                       override_residual=cfg.residual,
-                       control_mode="reactive" if cfg.variant == "rc" else "override", detector=cfg.eval_detector,
-                       detector_delay=cfg.detector_delay, reconstruction=cfg.reconstruction)
+  """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator). One object
+  per distinct env setting, so a second held-out evaluation (e.g. after a resume) reuses the compiled rollout."""
+  return _eval_env(cfg.vehicle, tuple(cfg.worlds), cfg.reward, cfg.residual, cfg.variant, cfg.eval_detector,
+                   cfg.detector_delay, cfg.reconstruction)
+
+
+@functools.lru_cache(maxsize=8)
+def _eval_env(vehicle, worlds, reward, residual, variant, detector, detector_delay, reconstruction):
+  return envs_lib.make(vehicle, worlds=worlds, reward=reward, override_frame="body", override_residual=residual,
+                       control_mode="reactive" if variant == "rc" else "override", detector=detector,
+                       detector_delay=detector_delay, reconstruction=reconstruction)
 
 
 def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: int = 10_000) -> dict:
