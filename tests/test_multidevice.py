@@ -2,12 +2,13 @@
 checks run in subprocesses): the same global batch, seed and env groups on 1 and on 4 devices train the same params
 (phase 1 + a phase-2 iteration of each agent), the env state is sharded over the devices, a 1-device checkpoint
 restores onto 4 devices, a non-divisible env count is a one-line error, a vmapped sweep equals its single runs, and
-two processes joined by jax.distributed train like one.
+two processes joined by jax.distributed (gloo) train like one.
 
-Cost: every distinct XLA program is compiled once. The 1-device part ('one') and the 4-device part ('four') run as
-two concurrent subprocesses (one compile each at a time; 2 cores). Runs that share a program config share compiled
-phases (iteration.make_phase's cache): the sweep's single runs and the multi-process reference are phase-2-only runs
-(phase1_steps=0), which reuse the 1-device run's phase-2 programs; the sweep itself is phase 2 only."""
+Cost: the time is XLA compiles, so each distinct program is compiled once: phases 1+2 on 1 device ('one'), on 4
+devices ('four'), the vmapped phase-2 sweep ('sweep') and phase 2 on the 2-process mesh. The parts run as concurrent
+subprocesses (a compile is single-threaded). Runs that differ only in data (seed, PPO hyperparameters) or in the step
+budgets share compiled phases (iteration.make_phase): the sweep's single runs and the 2-process run's reference are
+phase-2-only runs (phase1_steps=0) that reuse the 1-device run's phase-2 programs."""
 
 import json
 import os
@@ -27,19 +28,33 @@ COMMON = textwrap.dedent("""
   T0 = time.time()
   import jax, numpy as np
   from specguard_jax.ppo import attacker, config, distributed, iteration, runner
+  SPENT = {"trace": 0.0, "lower": 0.0, "compile": 0.0, "compiles": 0}
+  def _spent(event, secs, **_):   # where the time goes (trace / lower to MLIR / XLA compile)
+    for k, e in (("trace", "jaxpr_trace"), ("lower", "to_mlir"), ("compile", "backend_compile")):
+      if e in event:
+        SPENT[k] += secs
+        SPENT["compiles"] += k == "compile" and secs > 1.0
+  jax.monitoring.register_event_duration_secs_listener(_spent)
   TINY = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
   # checkpoint_every_s: only the end-of-phase checkpoints (the restores below read the last one).
   cfg = config.TrainConfig(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=128, phase2_steps=128,
                            hidden=(32, 32), worlds=("suburban_residential",), sg=TINY, aa=TINY, seed=3,
                            env_groups=4, alternate_iters=1, checkpoint_every_s=1e9).validate()
   cfg2 = dataclasses.replace(cfg, phase1_steps=0)   # phase 2 only: 1 SG + 1 AA iteration, cfg's phase-2 programs
+  CB = dataclasses.replace(cfg2, seed=4, sg=dataclasses.replace(TINY, lr=2e-3, clip_eps=0.1),
+                           aa=dataclasses.replace(TINY, ent_coef=0.02))   # the sweep's member b
   out, res = sys.argv[1], {}
 
-  def restore(run, n):
-    '''run's newest checkpoint (the final phase-2 carry) restored onto the layout of an n-device mesh (0: all).'''
-    ph = iteration.make_phase(cfg, 2, distributed.make_mesh(n))
+  def restore(run, n, traced=None):
+    '''run's newest checkpoint (the final phase-2 carry) restored onto the layout of an n-device mesh (0: all).
+    The shapes come from the phase-2 init traced by the run on `traced` devices (default n): same arguments (replicated
+    as train() passes them), so no retrace; its shardings are moved onto the n-device mesh.'''
+    mesh, target = distributed.make_mesh(n if traced is None else traced), distributed.make_mesh(n)
+    ph = iteration.make_phase(cfg, 2, mesh)
     k = jax.random.PRNGKey(0)
-    abstract = runner.abstract_carry(ph, k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS))
+    sg, aa, k = distributed.replicate((ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS), k), mesh)
+    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=jax.sharding.NamedSharding(
+        target, x.sharding.spec)), runner.abstract_carry(ph, k, sg, aa))
     mgr = runner._checkpointer(f"{out}/{run}")
     carry = runner._restore_carry(mgr, mgr.latest_step(), abstract)
     mgr.close()
@@ -60,11 +75,12 @@ COMMON = textwrap.dedent("""
     res[f"losses_{name}"] = [l["sg_loss"] for l in lines]
     res[f"aa_losses_{name}"] = [l.get("aa_loss", 0.0) for l in lines]
     np.savez(f"{out}/{name}.npz", *jax.tree.leaves(finals(carry)))
+    np.savez(f"{out}/{name}_sg.npz", *jax.tree.leaves(distributed.to_host(carry.sg.params)))
     return carry
 
   def done():
     r = resource.getrusage(resource.RUSAGE_SELF)
-    res["wall"], res["cpu"] = time.time() - T0, r.ru_utime + r.ru_stime
+    res["wall"], res["cpu"], res["spent"] = time.time() - T0, r.ru_utime + r.ru_stime, SPENT
     print("RESULT " + json.dumps(res))
 """)
 
@@ -75,38 +91,38 @@ FOUR = COMMON + textwrap.dedent("""
   done()
 """)
 
-# The 1-device programs and the sweep: cfg on 1 device; a vmapped 2-member phase-2 sweep (seed and hyperparameters
-# as data, members over 2 of the 4 devices) against its members' single phase-2-only runs, which share the 1-device
-# run's phase-2 programs; member b's 1-device checkpoint restored onto the 4-device layout.
+# The 1-device programs: cfg on 1 device; the sweep members' single phase-2-only runs (they share the 1-device run's
+# phase-2 programs); member b's 1-device checkpoint restored onto the 4-device layout.
 ONE = COMMON + textwrap.dedent("""
   assert len(jax.devices()) == 4, jax.devices()
   c1 = train("d1", cfg, 1, export=False)
   init = iteration.make_agents(cfg)[0].init(jax.random.split(jax.random.PRNGKey(cfg.seed), 3)[0], 24).params
   res["max_param_change"] = max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for x, y in zip(
       jax.tree.leaves(c1.sg.params), jax.tree.leaves(init)))
-  cb = dataclasses.replace(cfg2, seed=4, sg=dataclasses.replace(TINY, lr=2e-3, clip_eps=0.1),
-                           aa=dataclasses.replace(TINY, ent_coef=0.02))
+  train("a1", cfg2, 1, export=False)           # also the reference of the 2-process run
   t = time.time()
-  sw = runner.train_sweep([cfg2, cb], ["a", "b"], f"{out}/sweep", progress=False, export=False)
-  res["wall_sweep"] = time.time() - t
-  res["sweep_devices"] = sw[0]["devices"]
-  a1 = train("a1", cfg2, 1, export=False)     # also the reference of the 2-process run
-  t = time.time()
-  runner.train(dataclasses.replace(cb, num_devices=1), f"{out}/b1", progress=False, export=False)
+  runner.train(dataclasses.replace(CB, num_devices=1), f"{out}/b1", progress=False, export=False)
   res["wall_b1"] = time.time() - t
-  b1 = restore("b1", 4)                       # a 1-device checkpoint restored onto the 4-device layout
+  b1 = restore("b1", 4, traced=1)              # a 1-device checkpoint restored onto the 4-device layout
   res["b1_restored_devices"] = len(b1.env_state.obs.sharding.device_set)
-  diff = lambda x, y: max(float(np.max(np.abs(np.asarray(u) - np.asarray(v)))) for u, v in zip(
-      jax.tree.leaves(x), jax.tree.leaves(y)))
-  res["sweep_diff_a"] = diff(sw[0]["sg_state"].params, distributed.to_host(a1.sg.params))
-  res["sweep_diff_b"] = diff(sw[1]["sg_state"].params, distributed.to_host(b1.sg.params))
-  res["sweep_a_vs_b"] = diff(sw[0]["sg_state"].params, sw[1]["sg_state"].params)
-  res["sweep_lr_b"] = float(np.asarray(sw[1]["sg_state"].opt_state.hyperparams["lr"]))
+  np.savez(f"{out}/b1_sg.npz", *jax.tree.leaves(distributed.to_host(b1.sg.params)))
   try:
     iteration.make_phase(dataclasses.replace(cfg, num_envs=6, env_groups=0), 1)
     res["divisible_error"] = None
   except ValueError as e:
     res["divisible_error"] = str(e)
+  done()
+""")
+
+# A vmapped sweep of 2 members (seed and hyperparameters as data, members over 2 of the 4 devices), phase 2 only.
+SWEEP = COMMON + textwrap.dedent("""
+  t = time.time()
+  sw = runner.train_sweep([cfg2, CB], ["a", "b"], f"{out}/sweep", progress=False, export=False)
+  res["wall_sweep"] = time.time() - t
+  res["sweep_devices"] = sw[0]["devices"]
+  res["sweep_lr_b"] = float(np.asarray(sw[1]["sg_state"].opt_state.hyperparams["lr"]))
+  for name, s in zip("ab", sw):
+    np.savez(f"{out}/sweep_{name}_sg.npz", *jax.tree.leaves(s["sg_state"].params))
   done()
 """)
 
@@ -140,10 +156,13 @@ def _env(devices):
   return env
 
 
-def _run_all(cmds, env, timeout):
-  """Start the commands at once; wait for all (a failure stops the others). -> [(returncode, stdout, stderr)]."""
-  procs = [subprocess.Popen(c, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-           for c in cmds]
+def _start(cmds, env):
+  return [subprocess.Popen(c, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+          for c in cmds]
+
+
+def _wait(procs, timeout):
+  """Wait for all (a failure or the timeout stops the others) -> [(returncode, stdout, stderr)]."""
   end = time.time() + timeout
   try:
     while any(p.poll() is None for p in procs):
@@ -163,25 +182,52 @@ def _result(rc, out, err):
   return json.loads(lines[-1][len("RESULT "):])
 
 
-@pytest.fixture(scope="module")
-def dp_dir(tmp_path_factory):
-  return tmp_path_factory.mktemp("dp")
+def _gloo_ok():
+  import jax
+  return hasattr(jax.config, "jax_cpu_collectives_implementation")   # set to 'gloo' in the child processes
+
+
+MH_TEST = "test_two_processes_with_jax_distributed_train_like_one"
 
 
 @pytest.fixture(scope="module")
-def dp(dp_dir):
+def runs(request, tmp_path_factory):
+  """All subprocesses start at once (the 2-process run too, if selected: it only needs the others' results for its
+  comparison), so the compiles of the parts overlap on the cores; waits for the 1-, 4-device and sweep parts."""
+  out, mh_dir = tmp_path_factory.mktemp("dp"), tmp_path_factory.mktemp("mh")
   t = time.time()
-  outs = _run_all([[sys.executable, "-c", s, str(dp_dir)] for s in (ONE, FOUR)], _env(4), timeout=900)
-  one, four = (_result(*o) for o in outs)
-  res = {**one, **{k: v for k, v in four.items() if k not in ("wall", "cpu")}}
-  res["part_wall_cpu"] = {"one": (one["wall"], one["cpu"]), "four": (four["wall"], four["cpu"]),
-                          "both": time.time() - t}
-  print("\n[multidevice] " + json.dumps({k: v for k, v in res.items() if k.startswith(("wall", "part"))}))
-  return res
+  parts = {"one": ONE, "four": FOUR, "sweep": SWEEP}
+  procs = _start([[sys.executable, "-c", s, str(out)] for s in parts.values()], _env(4))
+  mh = []
+  if _gloo_ok() and any(item.name == MH_TEST for item in request.session.items):
+    with socket.socket() as sock:
+      sock.bind(("127.0.0.1", 0))
+      port = sock.getsockname()[1]
+    mh = _start([[sys.executable, "-c", MULTIHOST, str(mh_dir), f"127.0.0.1:{port}", str(i)] for i in (0, 1)],
+                _env(1))
+  try:
+    results = dict(zip(parts, (_result(*o) for o in _wait(procs, timeout=1200))))
+  except BaseException:
+    for p in mh:
+      p.kill()
+    raise
+  res = {k: v for r in results.values() for k, v in r.items() if k not in ("wall", "cpu", "spent")}
+  res["cost"] = {k: {"wall": r["wall"], "cpu": r["cpu"], **r["spent"]} for k, r in results.items()}
+  res["cost"]["all_parts_wall"] = time.time() - t
+  print("\n[multidevice] " + json.dumps({k: v for k, v in res.items() if k.startswith(("wall", "cost"))}))
+  yield dict(res=res, dir=out, mh=mh, mh_dir=mh_dir, t0=t)
+  for p in mh:
+    if p.poll() is None:
+      p.kill()
 
 
-def test_one_and_four_devices_train_the_same_params(dp, dp_dir):
-  d1, d4 = np.load(dp_dir / "d1.npz"), np.load(dp_dir / "d4.npz")
+@pytest.fixture(scope="module")
+def dp(runs):
+  return runs["res"]
+
+
+def test_one_and_four_devices_train_the_same_params(dp, runs):
+  d1, d4 = np.load(runs["dir"] / "d1.npz"), np.load(runs["dir"] / "d4.npz")
   assert dp["max_param_change"] > 1e-4            # training moved the params (so equality below means something)
   assert len(d1.files) == len(d4.files) > 0
   diff = max(float(np.max(np.abs(d1[k] - d4[k]))) for k in d1.files)
@@ -199,11 +245,17 @@ def test_env_state_is_sharded_over_the_devices(dp):
   assert dp["b1_restored_devices"] == 4            # a 1-device checkpoint restored onto 4 devices
 
 
-def test_vmapped_sweep_equals_single_runs(dp):
+def _max_diff(a, b):
+  assert len(a.files) == len(b.files) > 0
+  return max(float(np.max(np.abs(a[k] - b[k]))) for k in a.files)
+
+
+def test_vmapped_sweep_equals_single_runs(dp, runs):
+  sa, sb, a1, b1 = (np.load(runs["dir"] / f"{n}.npz") for n in ("sweep_a_sg", "sweep_b_sg", "a1_sg", "b1_sg"))
   assert dp["sweep_devices"] == 2                          # 2 members over 2 of the 4 devices
-  assert dp["sweep_a_vs_b"] > 1e-3                         # the members really differ
+  assert _max_diff(sa, sb) > 1e-3                          # the members really differ
   assert dp["sweep_lr_b"] == pytest.approx(2e-3)           # member b's step size is data in its optimizer state
-  assert dp["sweep_diff_a"] < 1e-4 and dp["sweep_diff_b"] < 1e-4, (dp["sweep_diff_a"], dp["sweep_diff_b"])
+  assert _max_diff(sa, a1) < 1e-4 and _max_diff(sb, b1) < 1e-4, (_max_diff(sa, a1), _max_diff(sb, b1))
 
 
 def test_env_count_not_divisible_by_devices_is_one_line_error(dp):
@@ -211,29 +263,20 @@ def test_env_count_not_divisible_by_devices_is_one_line_error(dp):
   assert err is not None and "\n" not in err and "divisible by the device count (4)" in err
 
 
-def _gloo_ok():
-  import jax
-  return hasattr(jax.config, "jax_cpu_collectives_implementation")   # set to 'gloo' in the child processes
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not _gloo_ok(), reason="this jaxlib has no CPU collectives (gloo) for a 2-process CPU run")
-def test_two_processes_with_jax_distributed_train_like_one(dp, dp_dir, tmp_path):
-  with socket.socket() as s:
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-  t = time.time()
-  outs = _run_all([[sys.executable, "-c", MULTIHOST, str(tmp_path), f"127.0.0.1:{port}", str(i)] for i in (0, 1)],
-                  _env(1), timeout=600)
-  r0, r1 = (_result(*o) for o in outs)
-  print(f"\n[multidevice] 2 processes: {time.time() - t:.1f} s wall, cpu {r0['cpu']:.1f} + {r1['cpu']:.1f} s")
+def test_two_processes_with_jax_distributed_train_like_one(runs):
+  r0, r1 = (_result(*o) for o in _wait(runs["mh"], timeout=900))
+  print(f"\n[multidevice] 2 processes: {time.time() - runs['t0']:.1f} s since the start, wall {r0['wall']:.1f} s, "
+        f"cpu {r0['cpu']:.1f} + {r1['cpu']:.1f} s, {r0['spent']}")
   assert r0["processes"] == 2 and r0["devices"] == 2 and r0["restored_devices"] == 2
-  p0, p1, ref = (np.load(f) for f in (tmp_path / "p0.npz", tmp_path / "p1.npz", dp_dir / "a1.npz"))
+  mh = runs["mh_dir"]
+  p0, p1, ref = (np.load(f) for f in (mh / "p0.npz", mh / "p1.npz", runs["dir"] / "a1.npz"))
   assert len(p0.files) == len(ref.files) > 0
   for k in ref.files:
     np.testing.assert_array_equal(p0[k], p1[k])                    # both processes hold the same replicas
     np.testing.assert_allclose(p0[k], ref[k], rtol=0, atol=1e-4)   # and they equal the single-process run
-  run = tmp_path / "run"
-  lines = (run / "metrics.jsonl").read_text().splitlines()
+  lines = (mh / "run" / "metrics.jsonl").read_text().splitlines()
   assert len(lines) == 2 and json.loads(lines[1])["aa_loss"] != 0   # only process 0 logged; both agents updated
-  assert (run / "policy.onnx").exists() and json.loads((run / "summary.json").read_text())["processes"] == 2
+  assert (mh / "run" / "policy.onnx").exists()                      # process 0 exported
+  assert json.loads((mh / "run" / "summary.json").read_text())["processes"] == 2
