@@ -4,6 +4,7 @@ interrupted + resumed twin that ends bit-identical, the CLI's one-line errors, a
 
 import json
 import os
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -91,6 +92,7 @@ def runs(tmp_path_factory):
   cfg = tiny(eval_missions=1, alternate_iters=2, **TWO_PHASE)
   full = runner.train(cfg, str(root / "full"), progress=False)
   part = runner.train(cfg, str(root / "part"), progress=False, export=False, stop_after_calls=3)
+  shutil.copytree(root / "part", root / "cut")   # the same stop, for the phase-boundary resume below
   resumed = runner.train(cfg, str(root / "part"), resume=True, progress=False)
   return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed)
 
@@ -120,6 +122,23 @@ def test_interrupted_run_resumes_bit_identical(runs):
   f2 = export.load_jax_policy(str(runs["root"] / "part"))
   x = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
   np.testing.assert_array_equal(np.asarray(f1(x)["setpoint"]), np.asarray(f2(x)["setpoint"]))
+
+
+def test_resume_from_the_phase_1_closing_checkpoint(runs):
+  """Killed after phase 1's closing checkpoint and before phase 2's first save (here: the phase-2 save removed), the
+  resumed run starts phase 2 from that checkpoint's agents and ends bit-identical to the uninterrupted run."""
+  cut = runs["root"] / "cut"
+  steps = sorted(int(d.name) for d in (cut / "checkpoints").iterdir() if d.name.isdigit())
+  shutil.rmtree(cut / "checkpoints" / str(steps[-1]))               # the phase-2 save: gone
+  mgr = runner._checkpointer(str(cut))
+  assert runner._restore_host(mgr)[1]["carry_phase"] == 1            # the newest left closes phase 1
+  mgr.close()
+  s = runner.train(runs["cfg"], str(cut), resume=True, progress=False, export=False)
+  assert s["env_steps"] == runs["full"]["env_steps"]
+  full, cutc = _final_sg(runs["cfg"], runs["root"] / "full"), _final_sg(runs["cfg"], cut)
+  for name in ("sg", "aa", "rng"):
+    for a, b in zip(jax.tree.leaves(getattr(full, name)), jax.tree.leaves(getattr(cutc, name))):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_tiny_train_evaluate_export_smoke(runs):

@@ -233,6 +233,15 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         aa_state = losses.with_hparams(phase.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa)
       sg_state, aa_state, k_init = distributed.replicate((sg_state, aa_state, jax.random.fold_in(k_phase, number)),
                                                          mesh)
+      if ckpt_step is not None and saved_host is not None and saved_host.get("carry_phase", number) != number:
+        # The newest checkpoint closed the previous phase (the run died before this phase's first save): its agents
+        # start this phase exactly as they do in an uninterrupted run.
+        before = it.make_phase(cfg, saved_host["carry_phase"], mesh)
+        prev = _restore_carry(mgr, ckpt_step, abstract_carry(before, k_init, sg_state, aa_state))
+        sg_state, aa_state = prev.sg, prev.aa
+        del prev
+        ckpt_step = None
+        log(f"[train] resumed at the start of phase {number} from {run_dir}")
       fresh = phase.init(k_init, sg_state, aa_state)
       if ckpt_step is not None and saved_host is not None:
         carry = _restore_carry(mgr, ckpt_step, fresh)
@@ -283,6 +292,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         interrupted, save_now = distributed.any_process(interrupted,
                                                         time.time() - last_ckpt >= cfg.checkpoint_every_s)
         if interrupted or save_now:
+          host["carry_phase"] = number   # the saved carry's phase (a resume restores onto that phase's layout)
           _save(mgr, carry, host)
           last_ckpt = time.time()
         if interrupted:
@@ -292,6 +302,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         print(file=sys.stderr)
       sg_state, aa_state = carry.sg, carry.aa
       host["phase_index"] += 1
+      host["carry_phase"] = number
       _save(mgr, carry, host)
     # ---- finished (or restored a finished run) ----
     if sg_state is None:  # resumed after the last phase: restore the final carry
