@@ -318,7 +318,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
   return _inject(cfg, s.replace(P=_condition(P)), dx), innov, ratio, accept
 
 
-def _reset_block(P, idx, var, do):
+def reset_block(P, idx, var, do):
   """Where `do`: clears rows/columns `idx` of P and sets their variance to var."""
   idx = jnp.asarray(idx)
   mask = jnp.zeros(N_ERR, bool).at[idx].set(True) & do
@@ -385,9 +385,9 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> E
   pos = jnp.where(reset_pos, s.pos.at[:2].set(readings.gps_pos[:2]), s.pos)
   pos = jnp.where(reset_hgt, pos.at[2].set(readings.baro_alt), pos)
   vel = jnp.where(reset_vel, readings.gps_vel, s.vel)
-  P = _reset_block(s.P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
-  P = _reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
-  P = _reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
+  P = reset_block(s.P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
+  P = reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
+  P = reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
   any_reset = reset_pos | reset_vel | reset_hgt
 
   return s.replace(

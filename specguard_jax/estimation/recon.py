@@ -58,6 +58,8 @@ def _deps():
 
 
 SENSOR_DEPS = _deps()
+_GBIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.GBIAS]   # error-state rows of the gyro / accel bias
+_ABIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ABIAS]
 # [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (the detector's map; odometry: none).
 _CHANNEL_MASK = (np.asarray(CHANNEL_SENSOR[:len(ekf_lib.CHANNELS)])[:, None]
                  == np.arange(len(SENSOR_NAMES))[None, :]).astype(np.float32)
@@ -204,7 +206,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # A newly replaced accelerometer: the accel-bias state restarts (zero, model_accel_sigma) to learn the model's error.
   new_accel = mask[ai] & ~(state.blamed[ai] > 0)
   shadow = shadow.replace(accel_bias=jnp.where(new_accel, 0.0, shadow.accel_bias),
-                          P=ekf_lib._reset_block(shadow.P, [12, 13, 14], cfg.model_accel_sigma ** 2, new_accel))
+                          P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.model_accel_sigma ** 2, new_accel))
 
   # model-predicted rate and specific force for this tick
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
@@ -248,8 +250,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   e = _unpack(ck.ckpt_get(state.ckpt, cfg.window - 1)[0])   # oldest trusted entry
   back_g, back_a = falling & (state.blamed[gi] > 0), falling & (state.blamed[ai] > 0)
   ecfg = cfg.ekf_cfg()
-  p_back = ekf_lib._reset_block(shadow.P, [9, 10, 11], ecfg.init_gyro_bias_sigma ** 2, back_g)
-  p_back = ekf_lib._reset_block(p_back, [12, 13, 14], ecfg.init_accel_bias_sigma ** 2, back_a)
+  p_back = ekf_lib.reset_block(shadow.P, _GBIAS_IDX, ecfg.init_gyro_bias_sigma ** 2, back_g)
+  p_back = ekf_lib.reset_block(p_back, _ABIAS_IDX, ecfg.init_accel_bias_sigma ** 2, back_a)
   shadow_out = shadow.replace(gps_pos_age=jnp.where(falling, zero, shadow.gps_pos_age),
                               gps_vel_age=jnp.where(falling, zero, shadow.gps_vel_age),
                               hgt_age=jnp.where(falling, zero, shadow.hgt_age),
