@@ -142,7 +142,9 @@ class RAVEnv(Env):
     self.config = config
     self.mj_model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS, self.asset))
     self.mj_model.opt.timestep = config.tick_dt
-    self.mjx_model = mjx.put_model(self.mj_model)
+    # On this process's own device: put_model's default, jax.devices()[0], is process 0's in a multi-process run, and
+    # a compiled function closing over an array on another process's device fails to trace there.
+    self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
     names = tuple(config.worlds) or (config.world,)
     self.world_ids = tuple(worlds_lib.PRESET_NAMES.index(w) for w in names)
     self.mission_cfg = config.mission or self._default_mission_config()

@@ -10,7 +10,8 @@ device count: the same G on 1 and on N devices gives the same result up to float
 Multi-host: `initialize()` calls `jax.distributed.initialize` (flags, or JAX's own env vars / cluster detection);
 `jax.devices()` is then every process's devices and the mesh spans them all; only process 0 logs and exports, Orbax
 checkpoints are written collectively, and host decisions (checkpoint now, stop) are OR-ed over the processes
-(`any_process`). Nothing a compiled phase closes over may live on another process's device (`local_constants`).
+(`any_process`). Nothing a compiled phase closes over may live on another process's device (the envs put their
+MJX model on the process's own device, envs/base.py).
 """
 
 from __future__ import annotations
@@ -91,23 +92,6 @@ def replicate(tree, mesh: Mesh):
     x = np.asarray(jax.device_get(x))
     return jax.make_array_from_callback(x.shape, sh, lambda idx: x[idx])
   return jax.tree.map(one, tree)
-
-
-def local_constants(env):
-  """Re-place the env's MJX model on this process's first local device and return env (changed in place).
-
-  mjx.put_model puts the model on jax.devices()[0]: in a multi-process run that is process 0's device, so on every
-  other process the compiled phases would close over arrays on a non-addressable device and their trace fails
-  ("Closing over jax.Array that spans non-addressable devices"; process 0 then waits forever in the first
-  collective). The model stays a jax.Array pytree (the envs update fields with .at[] for domain randomisation);
-  every process builds it from the same MjModel, so the values agree."""
-  base = env
-  while not hasattr(base, "mj_model") and hasattr(base, "env"):
-    base = base.env
-  if hasattr(base, "mj_model") and jax.process_count() > 1:
-    from mujoco import mjx
-    base.mjx_model = mjx.put_model(base.mj_model, device=jax.local_devices()[0])
-  return env
 
 
 def to_host(tree):

@@ -48,11 +48,10 @@ def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv)."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual)
   if phase == 1:
-    return distributed.local_constants(envs_lib.make(cfg.vehicle, control_mode="override", **common))
+    return envs_lib.make(cfg.vehicle, control_mode="override", **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
                       detector=cfg.detector, detector_delay=cfg.detector_delay,
                       reconstruction=cfg.reconstruction, **common)
-  distributed.local_constants(env)   # multi-process: no closed-over arrays on another process's device
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
