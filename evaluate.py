@@ -227,13 +227,14 @@ def main(argv=None) -> int:
   bar = Progress(n_roll, enabled=not args.no_progress)
   results = {"groups": {}, "not_run": {}, "skipped_experiments": p["skipped"], "rollouts": []}
   records, trajs = {}, {}
+  jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s)}
     if p["mission_s"]:
       mk = MissionConfig.drone if g["vehicle"] == "drone" else MissionConfig.rover
       base["mission"] = mk(min_duration_s=p["mission_s"][0], max_duration_s=p["mission_s"][1])
-    grp = {"vehicle": g["vehicle"], "worlds": list(g["worlds"]), "settings": [s.name for s in g["settings"]],
-           "controllers": {}}
+    results["groups"][gname] = {"vehicle": g["vehicle"], "worlds": list(g["worlds"]),
+                                "settings": [s.name for s in g["settings"]], "controllers": {}}
     for c in g["controllers"]:
       label = c if isinstance(c, str) else c[0]
       bar.show(f"{gname}: building {label}")
@@ -253,24 +254,31 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
-      env = E.make_env(g["vehicle"], **base, **ctrl.overrides())
-      bar.show(f"{gname}: {ctrl.name} ({len(g['settings'])} settings x {missions})")
-      timing = {}
-      rec, traj, steps = E.rollout(env, ctrl.policy, ctrl.params, g["settings"], missions=missions, seed=args.seed,
-                                   max_s=args.max_s, n_traj=args.traj, timing=timing)
-      records[(gname, ctrl.name)] = rec
-      trajs[(gname, ctrl.name)] = traj
-      grp["controllers"][ctrl.name] = {"description": ctrl.description,
-                                       "env_overrides": {k: R.jsonable(v) for k, v in ctrl.env_overrides},
-                                       "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps}
-      results["rollouts"].append({"group": gname, "controller": ctrl.name, "missions": int(len(rec["complete"])),
-                                  **timing})
-      bar.step(f"{gname}: {ctrl.name} done")
-    results["groups"][gname] = grp
-    grp["env"] = env_info = {"dt": None, "spec_names": None}
-    if any(k[0] == gname for k in records):
-      env_info["dt"], env_info["spec_names"] = env.dt, list(env.spec_names)
-      env_info["critical"] = [bool(x) for x in env.spec_table.critical]
+      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **base, **ctrl.overrides())))
+  bar.show(f"compiling {len(jobs)} rollouts")
+  compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
+                            "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,
+                            "n_traj": args.traj} for gname, ctrl, env in jobs])
+  results["compile_wall_s"] = compiled["wall"]
+  for i, (gname, ctrl, env) in enumerate(jobs):
+    g, grp = p["groups"][gname], results["groups"][gname]
+    bar.show(f"{gname}: {ctrl.name} ({len(g['settings'])} settings x {missions})")
+    timing = {}
+    rec, traj, steps = E.rollout(env, ctrl.policy, ctrl.params, g["settings"], missions=missions, seed=args.seed,
+                                 max_s=args.max_s, n_traj=args.traj, timing=timing)
+    timing["compile_s"] += compiled.get(i, 0.0)   # this job's own (overlapped) compile, 0 if shared
+    records[(gname, ctrl.name)] = rec
+    trajs[(gname, ctrl.name)] = traj
+    grp["controllers"][ctrl.name] = {"description": ctrl.description,
+                                     "env_overrides": {k: R.jsonable(v) for k, v in ctrl.env_overrides},
+                                     "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps}
+    results["rollouts"].append({"group": gname, "controller": ctrl.name, "missions": int(len(rec["complete"])),
+                                **timing})
+    bar.step(f"{gname}: {ctrl.name} done")
+    grp["env"] = {"dt": env.dt, "spec_names": list(env.spec_names),
+                  "critical": [bool(x) for x in env.spec_table.critical]}
+  for grp in results["groups"].values():
+    grp.setdefault("env", {"dt": None, "spec_names": None})
   bar.close()
   wall = time.time() - t_start
   meta = {"command": "python evaluate.py " + " ".join(argv if argv is not None else sys.argv[1:]),

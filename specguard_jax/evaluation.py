@@ -201,6 +201,48 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   return out, rec.get("traj"), t
 
 
+def _static(env, policy, policy_params, settings, missions, max_s, n_traj):
+  """The static jit arguments of `_rollout` and the compile-cache key of that configuration."""
+  static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
+                n_traj=int(n_traj))
+  return static, tuple(static.items()) + (jax.tree.structure(policy_params),)
+
+
+def precompile(jobs, *, workers: int = 0) -> dict:
+  """Compile several rollouts at once, ahead of flying them, and cache them for `rollout`.
+
+  jobs: list of dicts with the arguments of `rollout` (env, policy, policy_params, settings, missions, and optional
+  max_s, n_traj); configurations already compiled are skipped. XLA compilation releases the GIL, so `workers`
+  threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core GPU host the eight
+  env configs of `evaluate.py --suite paper` compile together instead of one after another. Returns {job index:
+  compile seconds of that job} and 'wall' (seconds for all of them)."""
+  import concurrent.futures
+  import os
+  todo = []
+  for i, j in enumerate(jobs):
+    static, ck = _static(j["env"], j["policy"], j["policy_params"], _as_settings(j["settings"]), j["missions"],
+                         j.get("max_s", 400.0), j.get("n_traj", 0))
+    if ck not in _COMPILED and all(ck != c for _, c, _, _ in todo):
+      todo.append((i, ck, static, j["policy_params"]))
+  workers = workers or max(1, min(len(todo), (os.cpu_count() or 2) // 2))
+  key = jax.random.PRNGKey(0)
+
+  def one(item):
+    i, ck, static, params = item
+    t0 = time.perf_counter()
+    fn = _rollout.lower(policy_params=params, key=key, **static).compile()
+    return i, ck, fn, time.perf_counter() - t0
+
+  out = {}
+  t0 = time.perf_counter()
+  with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
+    for i, ck, fn, dt in pool.map(one, todo):
+      _COMPILED[ck] = fn
+      out[i] = dt
+  out["wall"] = time.perf_counter() - t0
+  return out
+
+
 def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 10_000, max_s: float = 400.0,
             n_traj: int = 0, timing: dict | None = None, cache: bool = True):
   """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
@@ -210,9 +252,7 @@ def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 
   timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the same static configuration (clear_cache()
   frees them)."""
   settings = _as_settings(settings)
-  static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
-                n_traj=int(n_traj))
-  ck = tuple(static.items()) + (jax.tree.structure(policy_params),)
+  static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj)
   key = jax.random.PRNGKey(seed)
   t0 = time.perf_counter()
   fn = _COMPILED.get(ck)
