@@ -357,8 +357,11 @@ class RAVEnv(Env):
     if cfg.reconstruction:  # DeLorean: mission logic and autopilot run on the reconstructed state while under attack
       u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
       handback = sim["recon"].active & ~(sim["det"].alarm > 0)
+      # A GPS blamed by the residual detector: the shadow restarts from its GPS-free dead reckoning.
+      anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
       rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
-                                                     u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt)
+                                                     u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
+                                                     anchor)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)

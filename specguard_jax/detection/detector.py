@@ -34,7 +34,19 @@ position, or the GPS velocity away from the flow). Otherwise the aiding sensor w
 where a purely vertical GPS/baro disagreement (GPS horizontal channels quiet, GPS velocity agreeing with the flow) is
 attributed to the baro and a GPS attack that moves the horizontal channels explains the baro's.
 
-Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s`.
+GPS cross-check alarm (`position_check`, `xcheck`): a ramping GPS spoofer moves the GPS position and velocity
+consistently, the EKF follows and its innovations stay small, so the CUSUM above sees only the velocity step at the
+onset (a ramp under ~1.1 m/s hides from it; attacks/stealthy.py). The aiding sensors the IMU does not feed see it: the
+alarm is raised too when the GPS position is `dr_h` m from a GPS-free dead-reckoned position (optical flow x height or
+wheel odometry, rotated by the attitude, pulled to the GPS with time constant `dr_tau` while no alarm is up), or the
+velocity cross-check of `consistency` exceeds `vel_h` (both calibrated on attack-free missions, preset_file). Such an
+alarm is the GPS's unless the flow velocity moved without the IMU seeing it (complementary-filter tie-breaker: a flow
+ramp moves the flow, the GPS spoof the GPS; see `diagnose`). Its dead-reckoned position and velocity are the
+reconstruction's GPS-free starting point (estimation.recon, `anchor`).
+
+Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
+alarm of the cross-checks alone also waits for the velocity cross-check to agree again); on hand-back the dead
+reckoning restarts at the GPS and the velocity cross-check restarts.
 
 Everything is per vehicle, pure and jittable; vmap over vehicles.
 """
@@ -113,6 +125,19 @@ class DetectorConfig:
   height_sigma: float = 1.0         # m; error of the height (GPS or baro) that scales the flow
   cons_thr: float = 6.0             # GPS velocity disagrees with flow / odometry (chi statistic of the 2-D EMA)
   gps_baro_tol: float = 2.0         # m; GPS height disagrees with the barometer
+  # GPS cross-check ALARM (`position_check`): GPS vs a GPS-free dead-reckoned position / the flow velocity.
+  xcheck: bool = True               # raise the alarm on the cross-checks too (False: residual CUSUM alone)
+  dr_tau: float = 20.0              # s; the dead-reckoned position is pulled to the GPS with this time constant
+  dr_ema_s: float = 1.0             # s; smoothing of GPS - dead reckoning
+  dr_h: float = 5.0                 # m; alarm when every dead-reckoned variant is this far from the GPS (calibrated)
+  vel_h: float = 6.5                # alarm when the velocity cross-check (chi, `consistency`) exceeds this (calibrated)
+  xcheck_arm_s: float = 5.0         # s airborne (drone) / driving (rover) before the cross-check alarm is armed
+  comp_tau: float = 5.0             # s; complementary IMU filters pulled to the GPS / aiding velocity
+  comp_ema: float = 1.0             # s; smoothing of their innovations
+  aid_vel_tau: float = 0.5          # s; smoothing of the aiding velocity (the reconstruction's GPS-free velocity)
+  aid_blame: float = 0.65           # m/s; a cross-check alarm is the aiding sensor's (flow) when its IMU filter
+  aid_ratio: float = 2.0            #   innovation reaches this and this multiple of the GPS's; else the GPS's
+  xcheck_window_s: float = 1.0      # s; diagnosis window of an alarm raised by the cross-checks alone
   mass: float = 1.5
   inertia: tuple = (0.029125, 0.029125, 0.055225)
   rotor_xy: tuple = ()
@@ -183,6 +208,14 @@ class DetectorState:
   GPS height - baro (m); cons_w [2] EMA sample weights and cons_age [2] s since the last sample (velocity,
   height); gps_age [] s since the last GPS sample;
   cons [5] the current check (see `consistency`); cpeak [5] its max during the diagnosis window.
+  Cross-check alarm (`position_check`): dr [4, 2] anchored dead-reckoned horizontal positions (m; flow x baro
+  height / GPS height, each in the EKF and the magnetometer heading frame; rover: odometry, duplicated); dr_e [4, 2]
+  EMA of GPS - dr (m); aid [2] last
+  aiding sample (flow rad/s or odometry speed m/s, 0); aid_age [] s since it; comp [2, 2] complementary IMU filter
+  velocities (m/s, pulled to the GPS / the aiding velocity); comp_e [2, 2] EMA of their innovations (m/s);
+  aid_vel [2] the aiding sensor's horizontal world velocity (m/s, EMA over `aid_vel_tau`; no IMU, no GPS);
+  xchk [4] (|GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation|, |aiding innovation| m/s); xpeak [4] its max
+  during the diagnosis window; xraised [] bool the current alarm was raised by the cross-checks alone.
   """
   cusum: jnp.ndarray
   scores: jnp.ndarray
@@ -205,6 +238,16 @@ class DetectorState:
   gps_age: jnp.ndarray
   cons: jnp.ndarray
   cpeak: jnp.ndarray
+  dr: jnp.ndarray
+  dr_e: jnp.ndarray
+  aid: jnp.ndarray
+  aid_age: jnp.ndarray
+  comp: jnp.ndarray
+  comp_e: jnp.ndarray
+  aid_vel: jnp.ndarray
+  xchk: jnp.ndarray
+  xpeak: jnp.ndarray
+  xraised: jnp.ndarray
 
 
 def detector_init(cfg: DetectorConfig) -> DetectorState:
@@ -215,7 +258,11 @@ def detector_init(cfg: DetectorConfig) -> DetectorState:
                        time_since_alarm=z, quiet_time=z, n_alarms=jnp.zeros((), jnp.int32), time=z,
                        baseline=jnp.zeros(6), rate_model=jnp.zeros(3), airborne_time=z, cons_v=jnp.zeros(8),
                        cons_z=z, cons_w=jnp.zeros(2), cons_age=jnp.full((2,), 1e3), gps_age=jnp.full((), 1e3), cons=jnp.zeros(5),
-                       cpeak=jnp.zeros(5))
+                       cpeak=jnp.zeros(5), dr=jnp.full((4, 2), jnp.nan), dr_e=jnp.zeros((4, 2)), aid=jnp.zeros(2),
+                       aid_age=jnp.full((), 1e3),
+                       comp=jnp.full((2, 2), jnp.nan), comp_e=jnp.zeros((2, 2)), aid_vel=jnp.full((2,), jnp.nan),
+                       xchk=jnp.zeros(4), xpeak=jnp.zeros(4),
+                       xraised=jnp.zeros((), bool))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -332,6 +379,70 @@ def consistency(cfg: DetectorConfig, state: DetectorState, readings: SensorReadi
   return out, state.replace(cons_v=cons_v, cons_z=cons_z, cons_w=new_w, cons_age=age, gps_age=gps_age, cons=out)
 
 
+def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorReadings, ekf, dt):
+  """GPS cross-checks that raise the alarm (`xcheck`): GPS vs a GPS-free dead-reckoned (DR) position, and the
+  velocity check of `consistency` (call that first: it reads state.cons of this tick).
+
+  DR: the aiding sensor's body velocity (drone: optical flow x height, the body z velocity from the EKF; rover:
+  odometry forward speed, no side slip) rotated into the world by the EKF attitude (and, separately, by the EKF tilt
+  with the magnetometer heading), integrated, and pulled to the GPS position with time constant `dr_tau` while no
+  alarm is up (so a stealthy ramp, which moves the GPS and the EKF together, drags it only slowly). The drone keeps
+  4 variants (baro / GPS height x EKF / magnetometer heading) and the check takes the smallest |GPS - DR|: an attack
+  on one height or heading source alone does not fail it. Without an aiding sample (drone on the ground, flow below
+  its minimum height) the DR follows the EKF velocity.
+  Tie-breaker (diagnosis): two complementary filters integrate the IMU (EKF attitude and accel bias) and are pulled
+  to the GPS velocity and to the aiding velocity (`comp_tau`); the EMA (`comp_ema`) of each innovation says which
+  sensor's velocity CHANGED without the IMU seeing it (a GPS ramp steps the GPS velocity at its onset; a flow ramp
+  keeps moving the flow velocity; the IMU-propagated velocity is moved by neither).
+  Returns (xchk [4] = (min |GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation| m/s, |aiding innovation| m/s),
+  armed [] bool (aiding velocity available, airborne/driving >= xcheck_arm_s, velocity check available), new state).
+  """
+  r = quat_to_rot(ekf.quat)
+  dyaw = readings.mag_yaw - jnp.arctan2(r[1, 0], r[0, 0])
+  c, s = jnp.cos(dyaw), jnp.sin(dyaw)
+  r_m = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r   # EKF tilt, magnetometer heading
+  vb = r.T @ ekf.vel
+  if cfg.vehicle == "drone":
+    fresh = readings.flow_fresh > 0.5
+    aid = jnp.where(fresh, readings.flow, state.aid)
+    h = jnp.maximum(jnp.stack([readings.baro_alt, readings.gps_pos[2]]), cfg.flow_min_height)            # [2]
+    body = jnp.stack([jnp.concatenate([aid * hh, vb[2:]]) for hh in (h[0], h[1])])                        # [2, 3]
+  else:
+    fresh = readings.odom_fresh > 0.5
+    aid = jnp.where(fresh, jnp.stack([readings.odom_speed, 0.0]), state.aid)
+    body = jnp.tile(jnp.concatenate([aid[:1], jnp.zeros(2)])[None], (2, 1))
+  aid_age = jnp.where(fresh, 0.0, state.aid_age + dt)
+  vw = jnp.concatenate([(body @ r.T)[:, :2], (body @ r_m.T)[:, :2]])                                     # [4, 2]
+  ok = (aid_age < 0.5) & jnp.all(jnp.isfinite(vw))
+  v = jnp.where(ok, vw, ekf.vel[None, :2])
+  aid_vel = jnp.where(jnp.isfinite(state.aid_vel), state.aid_vel, v[0])
+  aid_vel = aid_vel + min(1.0, dt / cfg.aid_vel_tau) * (v[0] - aid_vel)
+  gps = readings.gps_pos[:2]
+  dr = jnp.where(jnp.isfinite(state.dr), state.dr, ekf.pos[None, :2]) + dt * v
+  gps_ok = (state.gps_age < 0.5) & jnp.all(jnp.isfinite(gps))
+  dr = dr + jnp.where(gps_ok & ~state.alarm, min(1.0, dt / cfg.dr_tau), 0.0) * (gps[None] - dr)
+  # GPS - DR, smoothed over dr_ema_s (the GPS position's white noise is most of a single sample's disagreement)
+  dr_e = jnp.where(jnp.isfinite(state.dr_e), state.dr_e, 0.0)
+  dr_e = dr_e + min(1.0, dt / cfg.dr_ema_s) * ((gps[None] - dr) - dr_e)
+  d = jnp.min(jnp.linalg.norm(dr_e, axis=-1))
+  # complementary IMU filters: [GPS, aiding] velocities
+  a = (r @ (readings.accel - ekf.accel_bias))[:2]
+  comp = jnp.where(jnp.isfinite(state.comp), state.comp, ekf.vel[None, :2]) + dt * a[None]
+  target = jnp.stack([readings.gps_vel[:2], vw[0]])
+  k = min(1.0, dt / cfg.comp_tau)
+  comp = comp + k * (target - comp)
+  comp = comp.at[1].set(jnp.where(ok, comp[1], ekf.vel[:2]))
+  innov = jnp.where(jnp.stack([gps_ok, ok])[:, None], target - comp, 0.0)
+  comp_e = state.comp_e + min(1.0, dt / cfg.comp_ema) * (innov - state.comp_e)
+  comp_e = jnp.where(jnp.all(jnp.isfinite(comp_e)), comp_e, 0.0)
+  chi = jnp.minimum(state.cons[0], state.cons[1])
+  armed = ok & gps_ok & (state.airborne_time >= cfg.xcheck_arm_s) & (state.cons[3] > 0.5)
+  xchk = jnp.stack([d / cfg.dr_h, chi / cfg.vel_h, jnp.linalg.norm(comp_e[0]), jnp.linalg.norm(comp_e[1])])
+  xchk = jnp.where(jnp.isfinite(xchk), xchk, 0.0) * armed
+  return xchk, armed, state.replace(dr=dr, dr_e=dr_e, aid=aid, aid_age=aid_age, comp=comp, comp_e=comp_e,
+                                    aid_vel=aid_vel, xchk=xchk)
+
+
 def cusum_step(cfg: DetectorConfig, s, r, fresh):
   """S = min(cap h, max(0, S + |r| / scale - k)) on fresh channels; [C] each. Returns (S, normalised |r|)."""
   scale = jnp.asarray(cfg.scale, jnp.float32)
@@ -345,9 +456,13 @@ def cusum_step(cfg: DetectorConfig, s, r, fresh):
 # diagnosis and switch
 
 
-def diagnose(cfg: DetectorConfig, peak, cons=None):
+def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False):
   """Sensor index (int32 []) blamed for per-channel evidence `peak` [C] (scores) and the GPS cross-checks `cons` [5]
-  during the diagnosis window (`consistency`; None: not available); see the module docstring."""
+  during the diagnosis window (`consistency`; None: not available); see the module docstring. xpeak [4]: the peak of
+  `position_check`'s xchk in the window; xraised: the alarm was raised by the cross-checks alone. While no CUSUM
+  score has reached 1 such an alarm is the GPS's, or the optical flow's when the flow velocity moved without the
+  IMU seeing it (its complementary-filter innovation >= aid_blame and >= aid_ratio x the GPS's), or an IMU sensor's
+  when the IMU-model channels say so."""
   used = jnp.asarray(cfg.used, jnp.float32)
   p = peak * used
   cons = jnp.zeros(5) if cons is None else jnp.asarray(cons, jnp.float32)
@@ -389,32 +504,51 @@ def diagnose(cfg: DetectorConfig, peak, cons=None):
   gyro_heading = heading_off & ((top == _S["mag"]) | (vel_pattern & aiding_top & (mag < c)))
   accel_vert = (gps_vel_z >= 1.0) & (gps_vel_h < c) & (gps_pos < 0.5 * c) & (mag < c) & ~gps_off_v & ~gps_off_z
   accel_like = (vel_pattern & aiding_top & gps_ok & (mag < c)) | accel_vert
-  return jnp.where(imu_alarm, imu_pick,
-                   jnp.where(gyro_like, _S["gyro"],
-                             jnp.where(gyro_heading, _S["gyro"],
-                                       jnp.where(accel_like, _S["accel"], top)))).astype(jnp.int32)
+  out = jnp.where(imu_alarm, imu_pick,
+                  jnp.where(gyro_like, _S["gyro"],
+                            jnp.where(gyro_heading, _S["gyro"],
+                                      jnp.where(accel_like, _S["accel"], top))))
+  if xpeak is not None:   # an alarm of the cross-checks alone: the GPS, unless the flow (or the IMU) explains it
+    xpeak = jnp.asarray(xpeak, jnp.float32)
+    e_gps, e_aid = xpeak[2], xpeak[3]
+    aid_moved = (e_aid >= cfg.aid_blame) & (e_aid >= cfg.aid_ratio * e_gps) & (cfg.vehicle == "drone")
+    x_pick = jnp.where(imu_alarm, imu_pick, jnp.where(aid_moved, _S["flow"], _S["gps"]))
+    out = jnp.where(jnp.asarray(xraised, bool) & (jnp.max(p) < 1.0), x_pick, out)
+  return out.astype(jnp.int32)
 
 
-def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=False, cons=None):
+def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=False, cons=None, xchk=None,
+            x_raised=False):
   """Alarm latch + diagnosis window + recovery hold (`hold` [] bool: an outside check, e.g. state reconstruction's,
-  says the attack is still on: not quiet; `cons` [5]: this tick's GPS cross-checks, None: unavailable). Returns the
-  updated alarm-related fields."""
+  says the attack is still on: not quiet; `cons` [5]: this tick's GPS cross-checks, None: unavailable; `xchk` [4]:
+  this tick's `position_check`, None: unavailable; `x_raised` [] bool: the cross-checks raise the alarm, `raised`
+  being the CUSUM's). Returns the updated alarm-related fields."""
+  x_only = jnp.asarray(x_raised, bool) & ~raised
+  raised = raised | x_only
   start = raised & ~state.alarm
   quiet = jnp.all(scores < cfg.clear_frac) & ~jnp.asarray(hold, bool)
+  # An alarm the cross-checks raised stays up while the GPS velocity still disagrees with the flow / odometry.
+  vel_off = (jnp.zeros(4) if xchk is None else xchk)[1] >= 1.0
+  quiet = quiet & ~(state.xraised & vel_off)
   quiet_time = jnp.where(state.alarm & quiet, state.quiet_time + dt, 0.0)
   clear = state.alarm & (quiet_time >= cfg.hold_s)
   alarm = (state.alarm | start) & ~clear
   tsa = jnp.where(start, 0.0, jnp.where(alarm, state.time_since_alarm + dt, 0.0))
-  in_window = alarm & (tsa <= cfg.diag_window_s)
+  xraised = jnp.where(start, x_only, state.xraised) & alarm
+  in_window = alarm & (tsa <= jnp.where(xraised, cfg.xcheck_window_s, cfg.diag_window_s))
   peak = jnp.where(start, scores, jnp.where(in_window, jnp.maximum(state.peak, scores),
                                             jnp.where(alarm, state.peak, 0.0)))
   cons = jnp.zeros(5) if cons is None else cons
   cpeak = jnp.where(start, cons, jnp.where(in_window, jnp.maximum(state.cpeak, cons),
                                            jnp.where(alarm, state.cpeak, 0.0)))
-  diag = jnp.where(alarm, diagnose(cfg, peak, cpeak), -1).astype(jnp.int32)
+  xchk = jnp.zeros(4) if xchk is None else xchk
+  xpeak = jnp.where(start, xchk, jnp.where(in_window, jnp.maximum(state.xpeak, xchk),
+                                           jnp.where(alarm, state.xpeak, 0.0)))
+  diag = jnp.where(alarm, diagnose(cfg, peak, cpeak, xpeak, xraised), -1).astype(jnp.int32)
   mask = jnp.where(alarm, jax.nn.one_hot(jnp.maximum(diag, 0), N_SENSORS), 0.0)
-  return dict(alarm=alarm, peak=peak, cpeak=cpeak, diagnosis=diag, mask=mask, time_since_alarm=tsa,
-              quiet_time=jnp.where(clear, 0.0, quiet_time), n_alarms=state.n_alarms + start.astype(jnp.int32))
+  return dict(alarm=alarm, peak=peak, cpeak=cpeak, xpeak=xpeak, xraised=xraised, diagnosis=diag, mask=mask,
+              time_since_alarm=tsa, quiet_time=jnp.where(clear, 0.0, quiet_time),
+              n_alarms=state.n_alarms + start.astype(jnp.int32))
 
 
 def detector_update(cfg: DetectorConfig, state: DetectorState, readings: SensorReadings, ekf_state, actuation,
@@ -423,14 +557,22 @@ def detector_update(cfg: DetectorConfig, state: DetectorState, readings: SensorR
   `_switch`). Returns the new DetectorState."""
   r, fresh, state = residuals(cfg, state, readings, ekf_state, actuation, dt)
   cons, state = consistency(cfg, state, readings, ekf_state, dt)
+  xchk, _, state = position_check(cfg, state, readings, ekf_state, dt)
   used = jnp.asarray(cfg.used) > 0
   fresh = fresh & used
   s, z = cusum_step(cfg, state.cusum, r, fresh)
   scores = s / jnp.asarray(cfg.h, jnp.float32) * used
   raised = jnp.any(scores > 1.0)
-  sw = _switch(cfg, state, scores, raised, dt, hold, cons)
+  x_raised = cfg.xcheck & jnp.any(xchk[:2] > 1.0)
+  sw = _switch(cfg, state, scores, raised, dt, hold, cons, xchk, x_raised)
+  # The recovery switch handed back (the GPS is trusted again): the dead-reckoned positions restart there and the
+  # velocity cross-check restarts (its EMA still holds the attack's disagreement).
+  cleared = state.alarm & ~sw["alarm"]
   return state.replace(cusum=s, scores=scores, residual=jnp.where(fresh, z, state.residual), time=state.time + dt,
-                       **sw)
+                       dr=jnp.where(cleared, readings.gps_pos[None, :2], state.dr),
+                       dr_e=jnp.where(cleared, 0.0, state.dr_e),
+                       cons_v=jnp.where(cleared, 0.0, state.cons_v), cons_w=state.cons_w.at[0].set(
+                           jnp.where(cleared, 0.0, state.cons_w[0])), **sw)
 
 
 def oracle_update(state: DetectorState, attack: attacks_lib.AttackSchedule, t, dt, delay: float = 0.0,

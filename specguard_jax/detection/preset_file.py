@@ -1,7 +1,8 @@
 """The shipped detector presets: calibrate the residual CUSUM detector on attack-free missions, save/load as JSON.
 
 `DetectorConfig.drone()` / `.rover()` (what the env uses when EnvConfig.detector_config is None) return the
-vehicle model with the calibrated `scale`, `h`, `used` and `k` read from assets/detector_<vehicle>.json;
+vehicle model with the calibrated `scale`, `h`, `used` and `k` and the GPS cross-check alarm thresholds `dr_h`,
+`vel_h` (detector.position_check) read from assets/detector_<vehicle>.json;
 `DetectorConfig.drone(calibrated=False)` gives the uncalibrated defaults (the starting point of `calibrate`).
 Calibration costs a compile and some simulation, so the thresholds are shipped as constants and regenerated with
 
@@ -24,6 +25,10 @@ both vehicles, vs 59 % (drone) / 61 % (rover) of 64 such missions with the uncal
 accel z ~140: heavy-tailed residuals in manoeuvres), so a 3 m/s^2 accel-z bias is flagged (0.9 s) through the GPS
 channels first and blamed on the GPS; a smaller --h-margin trades that against margin (at 1.0 the 256 held-out
 missions still had no false alarm).
+GPS cross-checks (session 5; same 1024 missions, same seed, the CUSUM fields unchanged bit for bit): dr_h, vel_h =
+--xcheck-margin 1.2 x the sample maximum of each mission's largest |GPS - dead reckoning| (1 s EMA) / velocity chi
+(drone: 3.42 m / 5.50 -> dr_h 4.10 m, vel_h 6.60; per-mission q99 2.28 m / 4.93; rover, odometry: 1.72 m / 9.01 ->
+2.06 m, 10.81, its CUSUM fields kept from the earlier calibration, see the file's meta).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ ASSETS = det._ASSETS
 CAL_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain", "suburban_streets",
               "urban_city_areas", "urban_green_areas", "urban_high_rise", "manufacturing_plant", "open_beach")
 FIELDS = ("scale", "h", "used", "k")
+XCHECK_FIELDS = ("dr_h", "vel_h")   # GPS cross-check alarm thresholds (optional in a file: defaults otherwise)
 
 
 def default_path(vehicle: str) -> str:
@@ -53,7 +59,8 @@ def default_path(vehicle: str) -> str:
 
 def save_preset(cfg: det.DetectorConfig, path: str, meta: dict | None = None) -> None:
   out = {"vehicle": cfg.vehicle, "channels": list(det.CHANNELS), "scale": list(cfg.scale), "h": list(cfg.h),
-         "used": list(cfg.used), "k": float(cfg.k), "meta": meta or {}}
+         "used": list(cfg.used), "k": float(cfg.k), **{k: float(getattr(cfg, k)) for k in XCHECK_FIELDS},
+         "meta": meta or {}}
   with open(path, "w") as f:
     json.dump(out, f, indent=1)
 
@@ -67,6 +74,7 @@ def _load(path: str, mtime_ns: int, vehicle: str | None) -> tuple:
       raise TypeError(f"top level is {type(d).__name__}, expected an object")
     out = {k: tuple(float(x) for x in d[k]) for k in ("scale", "h", "used")}
     out["k"] = float(d["k"])
+    out.update({k: float(d[k]) for k in XCHECK_FIELDS if k in d})
     channels, file_vehicle = list(d["channels"]), d["vehicle"]
   except (OSError, KeyError, TypeError, ValueError) as e:
     raise ValueError(f"cannot load detector preset {path}: {type(e).__name__}: {e}") from None
@@ -77,15 +85,16 @@ def _load(path: str, mtime_ns: int, vehicle: str | None) -> tuple:
   bad = [k for k in ("scale", "h", "used") if len(out[k]) != det.N_CHANNELS]
   bad += [k for k in ("scale", "h") if k not in bad and not all(math.isfinite(x) and x > 0 for x in out[k])]
   bad += ["used"] if "used" not in bad and not set(out["used"]) <= {0.0, 1.0} else []
-  bad += ["k"] if not (math.isfinite(out["k"]) and out["k"] > 0) else []
+  bad += [k for k in ("k",) + XCHECK_FIELDS if k in out and not (math.isfinite(out[k]) and out[k] > 0)]
   if bad:
     raise ValueError(f"detector preset {path}: bad {', '.join(bad)} (need {det.N_CHANNELS} finite positive scale/h, "
-                     "used in {0, 1}, k > 0)")
+                     "used in {0, 1}, k > 0, dr_h / vel_h > 0)")
   return tuple(out.items())
 
 
 def load_preset(path: str, vehicle: str | None = None) -> dict:
-  """The calibrated DetectorConfig fields {scale, h, used, k} from a JSON file written by save_preset (checked
+  """The calibrated DetectorConfig fields {scale, h, used, k} (and the cross-check thresholds dr_h, vel_h where the
+  file has them) from a JSON file written by save_preset (checked
   against `vehicle` if given and against CHANNELS); one-line ValueError if missing or malformed."""
   try:
     mtime = os.stat(path).st_mtime_ns
@@ -97,7 +106,8 @@ def load_preset(path: str, vehicle: str | None = None) -> dict:
 def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, batch: int = 64):
   """Fly len(keys) attack-free missions of `env` in worlds `world_ids` [N] for n_ticks ticks, in chunks of `batch`
   (the last padded: one compile). Returns numpy (|r| [N, T, C] float32, fresh [N, T, C] bool & valid, end [N] s:
-  how long each mission stayed valid)."""
+  how long each mission stayed valid, xmax [N, 2]: each mission's maximum of the raw GPS cross-checks,
+  traces.xcheck_trace)."""
   import jax  # noqa: PLC0415
   import jax.numpy as jnp  # noqa: PLC0415
 
@@ -110,22 +120,26 @@ def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, ba
   r_all = np.zeros((n, n_ticks, det.N_CHANNELS), np.float32)
   f_all = np.zeros((n, n_ticks, det.N_CHANNELS), bool)
   end = np.zeros((n,), np.float32)
+  xmax = np.zeros((n, 2), np.float32)
   for i in range(0, n, batch):
     idx = np.minimum(np.arange(i, i + batch), n - 1)
     tr = traces.record_ticks(env, keys[idx], free, n_ticks, jnp.asarray(world_ids[idx]))
     r, fresh = traces.residual_trace(base, tr, env.config.tick_dt)
+    x = jnp.max(traces.xcheck_trace(base, tr, env.config.tick_dt), axis=1)
     m = min(batch, n - i)
-    r, fresh, valid = jax.device_get((r[:m], fresh[:m], tr.valid[:m]))
-    r_all[i:i + m], f_all[i:i + m] = r, fresh
+    r, fresh, valid, x = jax.device_get((r[:m], fresh[:m], tr.valid[:m], x[:m]))
+    r_all[i:i + m], f_all[i:i + m], xmax[i:i + m] = r, fresh, x
     end[i:i + m] = valid.sum(-1) * env.config.tick_dt
-  return r_all, f_all, end
+  return r_all, f_all, end, xmax
 
 
 def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0, mission_s=(60.0, 120.0),
                       target_fpr: float = 0.01, seed: int = 0, worlds=CAL_WORLDS, batch: int = 64,
-                      h_margin: float | None = None, verbose: bool = True):
+                      h_margin: float | None = None, verbose: bool = True, xcheck_margin: float = 1.2):
   """Record `missions` attack-free missions (worlds round robin) and calibrate. Returns (DetectorConfig, meta).
-  h_margin: calibrate's threshold margin over the per-mission maxima (None: the DetectorConfig default)."""
+  h_margin: calibrate's threshold margin over the per-mission maxima (None: the DetectorConfig default).
+  The GPS cross-check thresholds dr_h, vel_h are xcheck_margin x the same quantile of the per-mission maxima of
+  the raw checks (traces.xcheck_trace) as the CUSUM's (with 1024 missions: the sample maximum)."""
   import jax  # noqa: PLC0415
   import jax.numpy as jnp  # noqa: PLC0415
 
@@ -145,9 +159,13 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
   env = envs.make(vehicle, mission=mcfg, worlds=tuple(worlds), detector_config=base)
   ids = [worlds_lib.PRESET_NAMES.index(worlds[i % len(worlds)]) for i in range(missions)]
   n_ticks = int(round(seconds / env.config.tick_dt))
-  r, fresh, end = record_free(env, base, jax.random.split(jax.random.PRNGKey(seed), missions), ids, n_ticks, batch)
+  r, fresh, end, xmax = record_free(env, base, jax.random.split(jax.random.PRNGKey(seed), missions), ids, n_ticks,
+                                    batch)
   t_rec = time.time() - t0
   cfg = det.calibrate(base, r, fresh, target_fpr)
+  q_x = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
+  x_raw = np.quantile(xmax, q_x, axis=0, method="higher")
+  cfg = dataclasses.replace(cfg, dr_h=float(xcheck_margin * x_raw[0]), vel_h=float(xcheck_margin * x_raw[1]))
   # In-sample statistics: per-mission max of the uncapped CUSUM S (k = 1), relative to the calibrated h.
   used = np.asarray(cfg.used) > 0
   q = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
@@ -164,7 +182,10 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
           "mission_end_s": [float(np.min(end)), float(np.median(end)), float(np.max(end))],
           "whole_missions": float(np.mean(end < seconds - 1e-3)),
           "n_fresh": [int(x) for x in n_fresh], "h_raw": [float(x) for x in h_raw],
-          "in_sample_false_alarms": float(np.mean(mission_score > 1.0)),
+          "xcheck_margin": xcheck_margin, "xcheck_raw": [float(x) for x in x_raw],
+          "xcheck_max_per_mission_q50_q90_q99_max": [[float(v) for v in np.quantile(xmax[:, j], [0.5, 0.9, 0.99, 1.0])]
+                                                     for j in range(2)],
+          "in_sample_false_alarms": float(np.mean((mission_score > 1.0) | np.any(xmax > [cfg.dr_h, cfg.vel_h], -1))),
           "in_sample_max_score": float(np.max(mission_score)),
           "in_sample_max_score_per_world": per_world,
           "calibration_s": round(time.time() - t0, 1)}
@@ -186,14 +207,18 @@ def main(argv=None):
   ap.add_argument("--worlds", default=",".join(CAL_WORLDS), help="comma-separated world presets (round robin)")
   ap.add_argument("--h-margin", type=float, default=None,
                   help=f"threshold margin over the per-mission CUSUM maxima (default {det.DetectorConfig.h_margin})")
+  ap.add_argument("--xcheck-margin", type=float, default=1.2,
+                  help="GPS cross-check thresholds over the per-mission maxima of the raw checks")
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--batch", type=int, default=64)
   ap.add_argument("--out", default="", help="default: assets/detector_<vehicle>.json")
   a = ap.parse_args(argv)
   worlds = tuple(w for w in a.worlds.split(",") if w)
   try:
+    if not a.xcheck_margin > 0:
+      raise ValueError("--xcheck-margin must be > 0")
     cfg, meta = calibrate_vehicle(a.vehicle, a.missions, a.seconds, tuple(a.mission_s), a.target_fpr, a.seed,
-                                  worlds, a.batch, a.h_margin)
+                                  worlds, a.batch, a.h_margin, xcheck_margin=a.xcheck_margin)
   except ValueError as e:
     ap.error(str(e))
   out = a.out or default_path(a.vehicle)
@@ -203,6 +228,7 @@ def main(argv=None):
   for c, u, s, h in zip(det.CHANNELS, cfg.used, cfg.scale, cfg.h):
     if u:
       print(f"  {c:10s} scale {s:9.4g}  h {h:8.2f}")
+  print(f"  GPS cross-checks: dr_h {cfg.dr_h:.2f} m, vel_h {cfg.vel_h:.2f}")
 
 
 if __name__ == "__main__":

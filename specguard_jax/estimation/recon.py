@@ -60,6 +60,8 @@ def _deps():
 SENSOR_DEPS = _deps()
 _GBIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.GBIAS]   # error-state rows of the gyro / accel bias
 _ABIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ABIAS]
+_POS_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.POS][:2]   # error-state rows of the horizontal position / velocity
+_VEL_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.VEL][:2]
 # [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (the detector's map; odometry: none).
 _CHANNEL_MASK = (np.asarray(CHANNEL_SENSOR[:len(ekf_lib.CHANNELS)])[:, None]
                  == np.arange(len(SENSOR_NAMES))[None, :]).astype(np.float32)
@@ -96,6 +98,8 @@ class ReconConfig:
   model_accel_limit: float = 3.0  # m/s^2: clamp of the shadow's accel-bias state
   consistency_sigma: float = 3.0  # a compromised aiding sensor further than this (innovation sigmas) from the shadow
                                   # estimate is still under attack: `suspect` (holds the recovery switch)
+  anchor_pos_sigma: float = 2.0   # m: horizontal position uncertainty of the GPS-free anchor (recon_tick `anchor`)
+  anchor_vel_sigma: float = 0.5   # m/s: its horizontal velocity uncertainty
 
   def ekf_cfg(self):
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
@@ -173,15 +177,22 @@ def _start(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state
 
 
 def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
-                 compromised_mask, alarm, dt):
+                 compromised_mask, alarm, dt, anchor=None):
   """One autopilot tick; see recon_tick. Returns (new ReconState, x_reconstructed [15])."""
-  new, x_rec, _, _ = recon_tick(cfg, params, state, ekf_state, readings, controls, compromised_mask, alarm, dt)
+  new, x_rec, _, _ = recon_tick(cfg, params, state, ekf_state, readings, controls, compromised_mask, alarm, dt,
+                                anchor)
   return new, x_rec
 
 
 def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
-               compromised_mask, alarm, dt):
+               compromised_mask, alarm, dt, anchor=None):
   """One autopilot tick of dt (s).
+
+  anchor: optional [4] GPS-free horizontal position (m) and velocity (m/s) of this tick (the detector's dead
+  reckoning, detection.detector.position_check: dr[0], aid_vel); when the GPS becomes compromised (the alarm rises
+  blaming it, or the diagnosis turns to it) the shadow filter's horizontal position and velocity restart there
+  (uncertainty anchor_pos_sigma / anchor_vel_sigma) instead of at the checkpoint, which a stealthy GPS ramp has
+  already dragged. None: the checkpoint's.
 
   ekf_state: the autopilot's EKFState after fusing `readings` (possibly attacked).  readings: SensorReadings of this
   tick.  controls: [n_u] controls applied during the previous tick (drone: sim['vehicle']['rotors'] before the tick's
@@ -207,6 +218,14 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   new_accel = mask[ai] & ~(state.blamed[ai] > 0)
   shadow = shadow.replace(accel_bias=jnp.where(new_accel, 0.0, shadow.accel_bias),
                           P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.model_accel_sigma ** 2, new_accel))
+  if anchor is not None:   # a newly compromised GPS: horizontal position / velocity from the GPS-free anchor
+    gpi = SENSOR_NAMES.index("gps")
+    anchor = jnp.asarray(anchor, jnp.float32)
+    new_gps = alarm & mask[gpi] & ~(state.blamed[gpi] > 0) & jnp.all(jnp.isfinite(anchor))
+    p = ekf_lib.reset_block(shadow.P, _POS_H_IDX, cfg.anchor_pos_sigma ** 2, new_gps)
+    shadow = shadow.replace(pos=shadow.pos.at[:2].set(jnp.where(new_gps, anchor[:2], shadow.pos[:2])),
+                            vel=shadow.vel.at[:2].set(jnp.where(new_gps, anchor[2:4], shadow.vel[:2])),
+                            P=ekf_lib.reset_block(p, _VEL_H_IDX, cfg.anchor_vel_sigma ** 2, new_gps))
 
   # model-predicted rate and specific force for this tick
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
@@ -238,7 +257,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
                     + [jnp.zeros(())]) > 0.5
   sampled = (jnp.asarray(_CHANNEL_MASK) @ mask.astype(jnp.float32) > 0) & fresh
   bad = jnp.any(sampled & (z > cfg.consistency_sigma))
-  suspect = alarm & jnp.where(jnp.any(sampled), bad, state.suspect)
+  # (held between samples; a diagnosis that changes drops what the previous mask's sensors said)
+  same = jnp.all(mask == (state.blamed > 0))
+  suspect = alarm & jnp.where(jnp.any(sampled), bad, state.suspect & same)
 
   ckpt = ck.ckpt_update(state.ckpt, _entry(ekf_state, readings), controls, alarm)
   # On the hand-back tick the trusted estimate is still the shadow's (the env re-syncs the autopilot's EKF to it,
