@@ -1,7 +1,8 @@
 """Closed-loop check of the GPS cross-check alarm and the GPS-free reconstruction start (zero policy = DeLorean:
 the autopilot flies on the reconstruction; RC + residual detector + reconstruction).
 
-  python bench/gps_xcheck.py --missions 16 --free 128 --seed 7 [--sensors gps,flow] [--no-xcheck] [--json OUT]
+  python bench/gps_xcheck.py [--vehicle drone] --missions 16 --free 128 --seed 7 [--sensors gps,flow] [--no-xcheck]
+      [--json OUT]
 
 Per setting (--sensors, stealthy and overt; missions paired across settings: same plan, world and noise, the attack
 drawn from the same key), one batched, jitted `lax.scan` of env steps over all missions; prints per setting:
@@ -35,6 +36,7 @@ SENSORS = ("gps", "flow")
 
 def main(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  ap.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   ap.add_argument("--missions", type=int, default=16, help="missions per attack setting")
   ap.add_argument("--free", type=int, default=128, help="attack-free missions (false alarms)")
   ap.add_argument("--seconds", type=float, default=130.0)
@@ -55,8 +57,8 @@ def main(argv=None):
   kw = dict(worlds=WORLDS, control_mode="reactive", detector="residual", detector_delay=0.5, reconstruction=True,
             override_residual=True, override_frame="body")
   if a.no_xcheck and not a.baseline:
-    kw["detector_config"] = detection.DetectorConfig.drone(xcheck=False)
-  env = envs.make("drone", **kw)
+    kw["detector_config"] = getattr(detection.DetectorConfig, a.vehicle)(xcheck=False)
+  env = envs.make(a.vehicle, **kw)
   n, T = a.missions, int(round(a.seconds / env.dt))
   keys = jax.random.split(jax.random.PRNGKey(a.seed), max(n, a.free))
   rows = [(s, p, j) for s, p in SETTINGS for j in range(n)] + [(None, None, j) for j in range(a.free)]
