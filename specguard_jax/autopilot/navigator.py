@@ -4,7 +4,9 @@ Runs on the autopilot's *estimated* position. Phases: TAKEOFF -> CRUISE (waypoin
 waypoint) -> DESCENT (drone, landing at the last waypoint) -> DONE. Guidance is line following: along-track speed
 limited by the cruise speed and by a braking profile towards the corner speed of the next waypoint (PX4's trajectory
 generator slows for corners; sqrt(a_lat * r_acc / tan(turn/2))), plus cross-track correction with MPC_XY_P / MPC_Z_P.
-Intermediate waypoints are flown through (switch at the acceptance radius, or when passed within 2 radii).
+Intermediate waypoints are flown through (switch at the acceptance radius, or when passed within 2 radii); the braking
+profile reaches the corner speed where the switch happens (one acceptance radius before the corner), not at the
+corner itself, or the vehicle carries ~2 m/s too much into the turn and overshoots it by several metres.
 """
 
 import dataclasses
@@ -28,7 +30,9 @@ class NavParams:
   z_vel_max_up: float = 3.0    # MPC_Z_VEL_MAX_UP
   z_vel_max_dn: float = 1.5    # MPC_Z_VEL_MAX_DN (descent speed above MPC_LAND_ALT2)
   tko_speed: float = 2.5       # MPC_TKO_SPEED (climb rate in take-off)
-  land_speed: float = 0.4      # MPC_LAND_SPEED (final landing below land_alt2)
+  land_speed: float = 0.3      # final landing descent below land_alt2 (PX4 MPC_LAND_SPEED; PX4's MPC_LAND_CRWL is
+  #                              0.3): 0.2 m/s under the S9 bound (0.5), for the EKF's vertical velocity error (up to
+  #                              ~0.15 m/s in gusts) plus gust-driven tracking error; 0.4 left ~1 % of landings above 0.5
   land_alt2: float = 5.0       # MPC_LAND_ALT2 (m)
   hold_speed_max: float = 3.0  # speed cap when holding a point (loiter, landing xy)
   turn_zone: float = 2.0       # turn zone = this many acceptance radii around an intermediate waypoint
@@ -111,7 +115,9 @@ def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
   closest = start_g + s * u
   remaining = jnp.maximum(leg_len - jnp.dot(pos_g - start_g, u), 0.0)
   v_corner = corner_speed(p, mission, tgt)
-  v_along = jnp.minimum(mission.cruise_speed, jnp.sqrt(v_corner ** 2 + 2.0 * p.acc_brake * remaining))
+  # Brake to the corner speed by the switch point (acceptance radius before an intermediate waypoint; a stop at 0).
+  to_switch = jnp.maximum(remaining - jnp.where(v_corner > 0, mission.acceptance_radius, 0.0), 0.0)
+  v_along = jnp.minimum(mission.cruise_speed, jnp.sqrt(v_corner ** 2 + 2.0 * p.acc_brake * to_switch))
   v_along = jnp.minimum(v_along, v_corner + p.xy_p * remaining)
   gains = jnp.array([p.xy_p, p.xy_p, p.z_p])
   vel_cruise = _clip_vel(p, v_along * u + gains * (closest - pos_g))
