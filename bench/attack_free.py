@@ -1,6 +1,6 @@
 """Attack-free missions flown by the autopilot alone, drawn exactly as the held-out evaluation draws them
 (specguard_jax.evaluation: seed 10,000, mission j from fold_in(key, j), world uniform over --worlds): per-spec
-violations (the attack-free SVR the issue asks to be 0 %), completion, crashes, collisions.
+violations (the attack-free SVR the issue asks to be 0 %), completion, RSR, crashes, collisions.
 
   python bench/attack_free.py --missions 1000 [--vehicle drone] [--worlds train|all|a,b] [--detector residual]
                               [--json OUT]
@@ -48,12 +48,15 @@ def main(argv=None):
   timing = {}
   rec, _, steps = E.rollout(env, zero, {}, (E.setting(None),), missions=a.missions, seed=a.seed, timing=timing,
                             cache=False)
+  from specguard_jax import metrics
   v = rec["violated"]
+  rec_ok = metrics.recovered(rec)
   fail = v.any(-1) | rec["crash"] | rec["collision"] | rec["nan"]
   out = {"vehicle": a.vehicle, "missions": a.missions, "seed": a.seed, "worlds": list(worlds), "detector": a.detector,
          "violating": int(v.any(-1).sum()), "failed": int(fail.sum()), "svr": float(fail.mean()),
          "violations_per_spec": {n: int(x) for n, x in zip(env.spec_names, v.sum(0))},
-         "complete": int(rec["complete"].sum()), "crash": int(rec["crash"].sum()),
+         "complete": int(rec["complete"].sum()), "recovered": int(rec_ok.sum()), "rsr": float(rec_ok.mean()),
+         "crash": int(rec["crash"].sum()),
          "collision": int(rec["collision"].sum()), "stall": int(rec["stall"].sum()),
          "unfinished": int(rec["unfinished"].sum()), "false_alarms": int(rec["detected"].sum()),
          "per_world": {}, "mean_mission_s": float(np.mean(rec["t_end"])), "steps": steps,
@@ -65,6 +68,7 @@ def main(argv=None):
   print(f"{a.vehicle} attack-free, {a.missions} missions (seed {a.seed}, worlds {a.worlds}, detector {a.detector}) "
         f"on {out['device']}: failed {out['failed']} ({100 * out['svr']:.2f} %), per spec "
         f"{ {k: x for k, x in out['violations_per_spec'].items() if x} }, complete {out['complete']}, "
+        f"RSR {100 * out['rsr']:.1f} % (within {metrics.RSR_RADIUS_M:g} m of the last waypoint), "
         f"crash {out['crash']}, collision {out['collision']}, stall {out['stall']}, false alarms "
         f"{out['false_alarms']}; compile {out['compile_s']:.1f} s, flight {out['run_s']:.1f} s")
   for w, r in out["per_world"].items():
