@@ -59,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--train-budget", choices=("ci", "full"), help="baseline training size (default: GPU full, CPU ci)")
   p.add_argument("--no-figures", action="store_true")
   p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--compile-cache", metavar="DIR|off",
+                 help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
+                      "~/.cache/specguard_jax/xla; off: none)")
   return p
 
 
@@ -212,6 +215,8 @@ def main(argv=None) -> int:
   t_start = time.time()
   try:
     p = plan(args)
+    from specguard_jax import compile_cache
+    compile_cache.enable(args.compile_cache)
   except ValueError as e:
     return _fail(e)
   import jax

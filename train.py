@@ -65,6 +65,9 @@ def parse_args(argv=None):
   ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
   ap.add_argument("--no-progress", action="store_true")
   ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+  ap.add_argument("--compile-cache", metavar="DIR|off",
+                  help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
+                       "~/.cache/specguard_jax/xla; off: none)")
   return ap.parse_args(argv)
 
 
@@ -156,9 +159,11 @@ def _sweep(members, out, a):
 
 def main(argv=None):
   a = parse_args(argv)
+  from specguard_jax import compile_cache
   from specguard_jax.ppo import distributed   # importing runner starts the backend: join the processes first
   try:
     distributed.initialize(a.coordinator, a.num_processes, a.process_id)
+    compile_cache.enable(a.compile_cache)
     from specguard_jax.ppo import runner
     if a.resume:
       cfg = runner.load_run_config(a.resume)

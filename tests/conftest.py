@@ -3,6 +3,7 @@
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+os.environ.setdefault("SPECGUARD_COMPILE_CACHE", "off")   # CLIs called in-process must not write ~/.cache
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
