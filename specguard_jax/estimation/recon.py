@@ -13,7 +13,10 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
     e.g. under GPS spoofing position is dead-reckoned from IMU + flow velocity + baro height + mag heading;
   * a compromised gyroscope is replaced by the model's body rate, integrated from the predicted angular acceleration
     (rotor-thrust torques), which the shadow EKF then corrects with the remaining aiding (GPS velocity, mag, flow)
-    through its attitude / gyro-bias states;
+    through its attitude / gyro-bias states (the latter folded into the model rate every tick); when the gyro is
+    newly blamed, the attitude its spoofed rates dragged the shadow to is re-levelled (`_relevel`: gravity reference
+    from the GPS velocity and the model's specific force, magnetometer yaw), and a blamed gyro stays replaced until
+    the hand-back;
   * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag); the
     shadow's accel-bias state then restarts and tracks the model's error (mass / thrust-gain uncertainty, larger
     clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back.
@@ -60,6 +63,9 @@ def _deps():
 SENSOR_DEPS = _deps()
 _GBIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.GBIAS]   # error-state rows of the gyro / accel bias
 _ABIAS_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ABIAS]
+_VEL_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.VEL]
+_TILT_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ATT][:2]   # world-frame attitude error: x, y (tilt), z (yaw)
+_YAW_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ATT][2:]
 _POS_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.POS][:2]   # error-state rows of the horizontal position / velocity
 _VEL_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.VEL][:2]
 # [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (the detector's map; odometry: none).
@@ -91,6 +97,14 @@ class ReconConfig:
   ekf: Any = None
   model_rate_noise: float = 0.3   # rad/s^2/sqrt(Hz): random walk of the model-rate error (shadow gyro-bias state)
   model_rate_limit: float = 3.0   # rad/s: clamp of that state
+  # A newly blamed gyroscope (_relevel): the attitude its spoofed rates dragged the shadow to is dropped.
+  relevel_tilt_sigma: float = 0.2  # rad: roll/pitch uncertainty of the shadow then
+  relevel_rate_sigma: float = 0.2  # rad/s: uncertainty of its model-rate error (gyro-bias) state then
+  relevel_min_tilt: float = 0.15   # rad: roll/pitch are re-levelled from the gravity reference when the shadow's tilt
+                                   # disagrees with it by more than this (else the shadow's are kept)
+  relevel_alpha: float = 0.3       # EMA weight per GPS sample of the gravity reference (ReconState gvel..f_lp)
+  sticky_gyro: bool = True         # a gyroscope blamed once stays replaced until the hand-back, even when the diagnosis
+                                   # moves on to another sensor (flying on the spoofed rates again flips the vehicle)
   # With the accelerometer replaced by the model's specific force, the shadow's accel-bias state tracks the model's
   # error (mass and thrust-gain uncertainty: up to ~2 m/s^2 vertically), not the sensor's bias:
   model_accel_sigma: float = 1.0  # m/s^2: its standard deviation when the accelerometer is (newly) replaced
@@ -113,7 +127,11 @@ class ReconState:
   since: [] s since the alarm rose (0 while inactive).  suspect: [] bool, a compromised GPS / baro / magnetometer /
   optical-flow reading disagrees with the shadow estimate by more than `consistency_sigma` (latest fresh sample;
   False while inactive): the attack is still on, so the recovery switch must not hand control back yet.
-  blamed: [6] 0/1 the compromised mask of the last tick (zeros while inactive)."""
+  blamed: [6] 0/1 the compromised mask of the last tick (zeros while inactive).
+  Gravity reference (_relevel; updated every tick): gvel [3] GPS velocity of the last sample (m/s, NaN before the
+  first), gage [] s since it, f_sum [3] the model's specific force integrated since it (m/s), acc_w [3] EMA of the
+  world acceleration between GPS samples (m/s^2), f_lp [3] EMA of the mean model specific force over the same
+  intervals (m/s^2, body)."""
   ckpt: ck.CheckpointState
   shadow: Any
   rate: jnp.ndarray
@@ -121,6 +139,11 @@ class ReconState:
   since: jnp.ndarray
   suspect: jnp.ndarray
   blamed: jnp.ndarray
+  gvel: jnp.ndarray = None
+  gage: jnp.ndarray = None
+  f_sum: jnp.ndarray = None
+  acc_w: jnp.ndarray = None
+  f_lp: jnp.ndarray = None
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
@@ -146,7 +169,64 @@ def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
   """Empty checkpoint, inactive; `ekf_state` is a template for the shadow filter (e.g. the env's initial EKF)."""
   return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
                     active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool),
-                    blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32))
+                    blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32), gvel=jnp.full(3, jnp.nan),
+                    gage=jnp.zeros(()), f_sum=jnp.zeros(3), acc_w=jnp.zeros(3), f_lp=jnp.zeros(3))
+
+
+def _gravity_ref(cfg: ReconConfig, state: ReconState, readings, f_model, dt):
+  """The gravity reference's fields after this tick (ReconState docstring): a GPS sample closes an interval, whose
+  world acceleration dv / interval and mean model specific force (thrust and drag, so neither IMU sensor) are EMA'd."""
+  fresh = readings.gps_fresh > 0.5
+  gage = state.gage + dt
+  f_sum = state.f_sum + f_model * dt
+  ok = fresh & jnp.all(jnp.isfinite(state.gvel)) & (gage > 0.5 * dt)
+  a_in = (readings.gps_vel - state.gvel) / jnp.maximum(gage, dt)
+  f_in = f_sum / jnp.maximum(gage, dt)
+  al = cfg.relevel_alpha
+  acc_w = jnp.where(ok, state.acc_w + al * (a_in - state.acc_w), state.acc_w)
+  f_lp = jnp.where(ok, jnp.where(jnp.any(state.f_lp != 0), state.f_lp + al * (f_in - state.f_lp), f_in), state.f_lp)
+  return dict(gvel=jnp.where(fresh, readings.gps_vel, state.gvel), gage=jnp.where(fresh, 0.0, gage),
+              f_sum=jnp.where(fresh, 0.0, f_sum), acc_w=acc_w, f_lp=f_lp)
+
+
+def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, do, switch):
+  """Where `do` (gyroscope newly blamed): drop the attitude the spoofed rates dragged the shadow to.
+
+  A slow gyro ramp below the detector's threshold (or a first diagnosis that blamed another sensor) leaves 10-50 deg
+  of attitude error in the checkpoint and so in the shadow; its aiding cannot pull that back (the 3-sigma
+  magnetometer and 5-sigma GPS-velocity gates reject it), so the autopilot held a wrong attitude and the vehicle
+  flipped ~1.5 s later. Here: yaw from the (trusted) magnetometer; roll/pitch from the gravity reference (the
+  GPS-derived world acceleration a and the model's specific force f over the last ~0.3 s satisfy R f = a - g: the
+  shortest tilt mapping f onto a - g under that yaw) where the shadow's tilt disagrees with it by more than
+  relevel_min_tilt; velocity from the (trusted) GPS; the attitude / velocity / model-rate-error covariance blocks
+  reset so the aiding is accepted again; the model rate restarts at zero where the diagnosis switched to the gyro
+  during the alarm (`switch`: it was the spoofed gyro's; a rising alarm's comes from the checkpoint's model roll).
+  Returns (shadow, rate)."""
+  ecfg = cfg.ekf_cfg()
+  gps_ok = do & ~mask[SENSOR_NAMES.index("gps")]
+  mag_ok = do & ~mask[SENSOR_NAMES.index("mag")]
+  e = math3d.quat_to_euler(shadow.quat)
+  yaw = jnp.where(mag_ok, readings.mag_yaw, e[2])
+  quat = math3d.euler_to_quat(jnp.stack([e[0], e[1], yaw]))
+  u, f = state.acc_w - dyn.G, state.f_lp
+  nu, nf = jnp.linalg.norm(u), jnp.linalg.norm(f)
+  uh, fh = u / jnp.maximum(nu, 1e-6), f / jnp.maximum(nf, 1e-6)
+  qz = jnp.stack([jnp.cos(0.5 * yaw), 0.0, 0.0, jnp.sin(0.5 * yaw)])
+  uy = math3d.quat_to_rot(qz).T @ uh                                              # a - g in the yaw frame
+  qt = jnp.concatenate([jnp.reshape(1.0 + fh @ uy, (1,)), jnp.cross(fh, uy)])     # shortest rotation fh -> uy
+  q_acc = math3d.quat_mul(qz, qt / jnp.maximum(jnp.linalg.norm(qt), 1e-6))
+  off = jnp.arccos(jnp.clip((math3d.quat_to_rot(quat) @ fh) @ uh, -1.0, 1.0))     # shadow's tilt vs the reference
+  acc_ok = (gps_ok & jnp.all(jnp.isfinite(state.gvel)) & (nf > 3.0) & (nu > 3.0) & (fh @ uy > 0.0)
+            & (off > cfg.relevel_min_tilt))
+  quat = jnp.where(acc_ok, q_acc / jnp.linalg.norm(q_acc), quat)
+  p = ekf_lib.reset_block(shadow.P, _TILT_IDX, cfg.relevel_tilt_sigma ** 2, do)
+  p = ekf_lib.reset_block(p, _YAW_IDX, jnp.where(mag_ok, ecfg.mag_heading_noise ** 2, ecfg.init_yaw_sigma ** 2), do)
+  p = ekf_lib.reset_block(p, _VEL_IDX, jnp.where(gps_ok, ecfg.gps_vel_noise ** 2, ecfg.init_vel_sigma ** 2), do)
+  p = ekf_lib.reset_block(p, _GBIAS_IDX, cfg.relevel_rate_sigma ** 2, do)
+  shadow = shadow.replace(quat=jnp.where(mag_ok | acc_ok, quat, shadow.quat),
+                          vel=jnp.where(gps_ok, readings.gps_vel, shadow.vel),
+                          gyro_bias=jnp.where(do, 0.0, shadow.gyro_bias), P=p)
+  return shadow, jnp.where(do & switch, 0.0, rate)
 
 
 def dependent_components(compromised_mask) -> jax.Array:
@@ -207,6 +287,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
+  if cfg.sticky_gyro:   # a gyroscope blamed during this alarm stays replaced until the hand-back
+    g_i = SENSOR_NAMES.index("gyro")
+    mask = mask.at[g_i].set(mask[g_i] | (alarm & (state.blamed[g_i] > 0)))
   x_meas = input_vector(ekf_state, readings)
   rising = alarm & ~state.active
   falling = state.active & ~alarm   # the recovery switch hands back on this tick
@@ -226,6 +309,10 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
     shadow = shadow.replace(pos=shadow.pos.at[:2].set(jnp.where(new_gps, anchor[:2], shadow.pos[:2])),
                             vel=shadow.vel.at[:2].set(jnp.where(new_gps, anchor[2:4], shadow.vel[:2])),
                             P=ekf_lib.reset_block(p, _VEL_H_IDX, cfg.anchor_vel_sigma ** 2, new_gps))
+
+  # A newly blamed gyroscope (the alarm rises blaming it, or the diagnosis turns to it): see _relevel.
+  new_gyro = alarm & mask[gi] & ~(state.blamed[gi] > 0)
+  shadow, rate = _relevel(cfg, state, shadow, rate, readings, mask, new_gyro, ~rising)
 
   # model-predicted rate and specific force for this tick
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
@@ -247,6 +334,10 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   shadow = ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
+  # ... with the correction folded into it: the gyro-bias state (the model rate's error) restarts at zero every tick,
+  # so a persistent model error does not walk it into its clamp (model_rate_limit) over a long alarm.
+  shadow = shadow.replace(gyro_bias=jnp.where(mask[gi], 0.0, shadow.gyro_bias))
+  rd = rd.replace(gyro=jnp.where(mask[gi], rate_new, rd.gyro))
   x_shadow = input_vector(shadow, rd)
   use = (alarm & dependent_components(mask)) | falling
   x_rec = jnp.where(use, x_shadow, x_meas)
@@ -280,7 +371,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
                               accel_bias=jnp.where(back_a, e["accel_bias"], shadow.accel_bias), P=p_back)
   trusted = jax.tree.map(lambda a, b: jnp.where(on, a, b), shadow_out, ekf_state)
   trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)   # sensors back on hand-back
-  new = ReconState(ckpt=ckpt, shadow=trusted, rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
+  new = ReconState(**_gravity_ref(cfg, state, readings, f_b, dt), ckpt=ckpt, shadow=trusted,
+                   rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
                    since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
                    blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0))
   return new, x_rec, trusted, trusted_rd
