@@ -4,6 +4,8 @@
 
 Prints microseconds per call of the batch and the share of one env step (5 ticks). Components are measured in
 isolation, so their sum differs from the fused step (XLA fuses across component boundaries in the real step).
+The env is the phase-2 one (reactive control, residual detector, state reconstruction), so the residual detector's
+and the reconstruction's per-tick costs are listed too; `--plain` profiles the phase-1 env (autopilot only).
 """
 
 import argparse
@@ -34,6 +36,7 @@ def main():
   p.add_argument("--vehicle", default="drone")
   p.add_argument("--envs", type=int, default=65536)
   p.add_argument("--reps", type=int, default=20)
+  p.add_argument("--plain", action="store_true", help="the phase-1 env (no detector, no reconstruction)")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
@@ -41,7 +44,8 @@ def main():
   from specguard_jax import ekf as ekf_lib
   from specguard_jax import sensors as sensors_lib
   from envs import worlds
-  env = envs.make(a.vehicle)
+  phase2 = {} if a.plain else dict(control_mode="reactive", detector="residual", reconstruction=True)
+  env = envs.make(a.vehicle, **phase2)
   n, k = a.envs, env.config.ticks_per_step
   keys = jax.random.split(jax.random.PRNGKey(0), n)
   state = jax.jit(jax.vmap(env.reset))(keys)
@@ -63,6 +67,20 @@ def main():
       c, sim["truth"], keys), sim["sensors"], k)
   add("ekf_step", lambda e: V(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, dt))(e, sim["readings"]),
       sim["ekf"], k)
+
+  if not a.plain:
+    from specguard_jax import detection as detection_lib
+    from specguard_jax.estimation import recon as recon_lib
+    from specguard_jax.estimation import traces as traces_lib
+    act = V(env._actuation)(sim)
+    add("detector_update (residual)", lambda d: V(lambda d, r, e, u: detection_lib.detector_update(
+        env.det_cfg, d, r, e, u, dt))(d, sim["readings"], sim["ekf"], act), sim["det"], k)
+    u_prev = V(lambda s: traces_lib.vehicle_controls(env.vehicle, s))(sim)
+    alarm = jnp.ones((n,), jnp.float32)     # under attack: the shadow filter and the replay carry real work
+    mask = jnp.zeros((n, sim["det"].mask.shape[-1]), bool).at[:, 0].set(True)
+    add("recon_tick (alarm up)", lambda r: V(lambda r, e, rd, u, m, al: recon_lib.recon_tick(
+        env.recon_cfg, env.dyn_params, r, e, rd, u, m, al, dt)[0])(r, sim["ekf"], sim["readings"], u_prev, mask,
+                                                                     alarm), sim["recon"], k)
 
   def tick_only(c):
     d, s = c
