@@ -43,10 +43,15 @@ velocity cross-check of `consistency` exceeds `vel_h` (both calibrated on attack
 alarm is the GPS's unless the flow velocity moved without the IMU seeing it (complementary-filter tie-breaker: a flow
 ramp moves the flow, the GPS spoof the GPS; see `diagnose`). Its dead-reckoned position and velocity are the
 reconstruction's GPS-free starting point (estimation.recon, `anchor`).
+Height cross-check (`hgt_h`, drone preset): |GPS height - baro| (3 s EMA of `consistency`) above hgt_h raises the alarm
+too (a baro ramp drags the EKF height, the baro being its height reference, and hides from the baro innovation). It is
+the baro's while the GPS velocity agrees with the flow, and turns to the GPS if the GPS position leaves the (still
+anchored) dead reckoning within `hgt_listen_s` (a GPS ramp with a vertical component). Accelerometer alarms that the
+IMU-model channels missed (slow ramps): both complementary-filter innovations large and alike (`imu_comp`).
 
 Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
-alarm of the cross-checks alone also waits for the velocity cross-check to agree again); on hand-back the dead
-reckoning restarts at the GPS and the velocity cross-check restarts.
+alarm of the cross-checks alone also waits for the velocity and height cross-checks to agree again); on hand-back
+the dead reckoning restarts at the GPS and the velocity and height cross-checks restart.
 
 Everything is per vehicle, pure and jittable; vmap over vehicles.
 """
@@ -132,11 +137,18 @@ class DetectorConfig:
   dr_h: float = 5.0                 # m; alarm when every dead-reckoned variant is this far from the GPS (calibrated)
   vel_h: float = 6.5                # alarm when the velocity cross-check (chi, `consistency`) exceeds this (calibrated)
   xcheck_arm_s: float = 5.0         # s airborne (drone) / driving (rover) before the cross-check alarm is armed
+  hgt_h: float = 0.0                # m; alarm when |GPS height - baro| (3 s EMA, `consistency`) exceeds this; 0: off
+                                    #   (calibrated, preset_file); such an alarm is the baro's while the GPS
+  hgt_gps_frac: float = 1.0         #   velocity cross-check stays under this fraction of vel_h, else the GPS's
+  hgt_listen_s: float = 8.0         # s; ... or until the position check fails within this long after its window
+                                    #   (a GPS ramp; the check creeps up slowly in long baro alarms: EKF tilt)
   comp_tau: float = 5.0             # s; complementary IMU filters pulled to the GPS / aiding velocity
   comp_ema: float = 1.0             # s; smoothing of their innovations
   aid_vel_tau: float = 0.5          # s; smoothing of the aiding velocity (the reconstruction's GPS-free velocity)
   aid_blame: float = 0.65           # m/s; a cross-check alarm is the aiding sensor's (flow) when its IMU filter
   aid_ratio: float = 2.0            #   innovation reaches this and this multiple of the GPS's; else the GPS's
+  imu_comp: float = 0.8             # m/s; both IMU-filter innovations this large and within aid_ratio of each other:
+                                    #   the IMU moved away from GPS and flow alike (drone: the accelerometer's)
   xcheck_window_s: float = 1.0      # s; diagnosis window of an alarm raised by the cross-checks alone
   mass: float = 1.5
   inertia: tuple = (0.029125, 0.029125, 0.055225)
@@ -151,6 +163,7 @@ class DetectorConfig:
   ground_z: float = _GROUND_Z_DRONE
   warmup_s: float = 3.0
   baseline_tau: float = 2.0
+  slow_tau: float = 20.0        # s; slow IMU residual baseline (no alarm): the accel reference while an IMU is blamed
   warmup_tau: float = 0.5
   rate_tau: float = 0.5
   k_quantile: float = 0.999
@@ -216,6 +229,8 @@ class DetectorState:
   aid_vel [2] the aiding sensor's horizontal world velocity (m/s, EMA over `aid_vel_tau`; no IMU, no GPS);
   xchk [4] (|GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation|, |aiding innovation| m/s); xpeak [4] its max
   during the diagnosis window; xraised [] bool the current alarm was raised by the cross-checks alone.
+  base_slow [6]: slow IMU residual baseline (`slow_tau`, frozen while an alarm is up): the accelerometer's reference
+  while an IMU sensor is blamed.
   """
   cusum: jnp.ndarray
   scores: jnp.ndarray
@@ -248,6 +263,7 @@ class DetectorState:
   xchk: jnp.ndarray
   xpeak: jnp.ndarray
   xraised: jnp.ndarray
+  base_slow: jnp.ndarray
 
 
 def detector_init(cfg: DetectorConfig) -> DetectorState:
@@ -262,7 +278,7 @@ def detector_init(cfg: DetectorConfig) -> DetectorState:
                        aid_age=jnp.full((), 1e3),
                        comp=jnp.full((2, 2), jnp.nan), comp_e=jnp.zeros((2, 2)), aid_vel=jnp.full((2,), jnp.nan),
                        xchk=jnp.zeros(4), xpeak=jnp.zeros(4),
-                       xraised=jnp.zeros((), bool))
+                       xraised=jnp.zeros((), bool), base_slow=jnp.zeros(6))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -318,11 +334,16 @@ def residuals(cfg: DetectorConfig, state: DetectorState, readings: SensorReading
   # The baseline is frozen while an IMU sensor is blamed: a persisting IMU bias keeps its residual (and the alarm) up.
   baseline = jnp.where(airborne, state.baseline + (e - state.baseline) * jnp.minimum(1.0, dt / tau), e)
   imu_blamed = state.alarm & ((state.diagnosis == _S["gyro"]) | (state.diagnosis == _S["accel"]))
-  baseline = jnp.where(imu_blamed, state.baseline, baseline)
+  # The accelerometer's frozen reference is the slow baseline of the last alarm-free flight: the fast one has already
+  # absorbed ~40 % of an overt bias by the time it is blamed (most of a slow ramp), so the residual stayed off it after
+  # the attack ended and the alarm never cleared (the shadow flew the landing). Gyro channels: the fast one, frozen.
+  base_slow = jnp.where(warm & ~state.alarm, state.base_slow + (e - state.base_slow) * min(1.0, dt / cfg.slow_tau),
+                        jnp.where(warm, state.base_slow, baseline))
+  baseline = jnp.where(imu_blamed, jnp.concatenate([state.base_slow[:3], state.baseline[3:]]), baseline)
   rate_model = rate_pred + (readings.gyro - rate_pred) * min(1.0, dt / cfg.rate_tau)
   rate_model = jnp.where(airborne & jnp.all(jnp.isfinite(rate_model)), rate_model, readings.gyro)
   fresh = jnp.concatenate([fresh_ekf, ch & warm])
-  new = state.replace(baseline=baseline, rate_model=rate_model, airborne_time=airborne_time)
+  new = state.replace(baseline=baseline, rate_model=rate_model, airborne_time=airborne_time, base_slow=base_slow)
   return jnp.concatenate([r_ekf, out]), fresh, new
 
 
@@ -420,7 +441,10 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   gps = readings.gps_pos[:2]
   dr = jnp.where(jnp.isfinite(state.dr), state.dr, ekf.pos[None, :2]) + dt * v
   gps_ok = (state.gps_age < 0.5) & jnp.all(jnp.isfinite(gps))
-  dr = dr + jnp.where(gps_ok & ~state.alarm, min(1.0, dt / cfg.dr_tau), 0.0) * (gps[None] - dr)
+  # (still anchored while the alarm blames the baro: the GPS is trusted then, and a GPS ramp the height check caught
+  # first keeps failing the position check, `_switch`)
+  trusted = ~state.alarm | (state.diagnosis == _S["baro"])
+  dr = dr + jnp.where(gps_ok & trusted, min(1.0, dt / cfg.dr_tau), 0.0) * (gps[None] - dr)
   # GPS - DR, smoothed over dr_ema_s (the GPS position's white noise is most of a single sample's disagreement)
   dr_e = jnp.where(jnp.isfinite(state.dr_e), state.dr_e, 0.0)
   dr_e = dr_e + min(1.0, dt / cfg.dr_ema_s) * ((gps[None] - dr) - dr_e)
@@ -443,6 +467,15 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
                                     aid_vel=aid_vel, xchk=xchk)
 
 
+def _hgt_off(cfg: DetectorConfig, state: DetectorState, cons):
+  """[] bool: the GPS height / baro cross-check (`cons` [5] of this tick) exceeds hgt_h (armed like position_check:
+  airborne / driving >= xcheck_arm_s; hgt_h <= 0: off). A barometer ramp drags the EKF height (the baro is its
+  height reference) and hides from the baro innovation; the GPS height does not follow it."""
+  if cfg.hgt_h <= 0:
+    return jnp.zeros((), bool)
+  return (cons[4] > 0.5) & (cons[2] > cfg.hgt_h) & (state.airborne_time >= cfg.xcheck_arm_s)
+
+
 def cusum_step(cfg: DetectorConfig, s, r, fresh):
   """S = min(cap h, max(0, S + |r| / scale - k)) on fresh channels; [C] each. Returns (S, normalised |r|)."""
   scale = jnp.asarray(cfg.scale, jnp.float32)
@@ -456,13 +489,14 @@ def cusum_step(cfg: DetectorConfig, s, r, fresh):
 # diagnosis and switch
 
 
-def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False):
+def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, settled=True):
   """Sensor index (int32 []) blamed for per-channel evidence `peak` [C] (scores) and the GPS cross-checks `cons` [5]
   during the diagnosis window (`consistency`; None: not available); see the module docstring. xpeak [4]: the peak of
   `position_check`'s xchk in the window; xraised: the alarm was raised by the cross-checks alone. While no CUSUM
   score has reached 1 such an alarm is the GPS's, or the optical flow's when the flow velocity moved without the
   IMU seeing it (its complementary-filter innovation >= aid_blame and >= aid_ratio x the GPS's), or an IMU sensor's
-  when the IMU-model channels say so."""
+  when the IMU-model channels say so. settled [] bool: the diagnosis window is over (the `imu_comp` pattern is read
+  only then: a fast GPS ramp moves both filters alike for its first ticks)."""
   used = jnp.asarray(cfg.used, jnp.float32)
   p = peak * used
   cons = jnp.zeros(5) if cons is None else jnp.asarray(cons, jnp.float32)
@@ -512,8 +546,21 @@ def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False):
     xpeak = jnp.asarray(xpeak, jnp.float32)
     e_gps, e_aid = xpeak[2], xpeak[3]
     aid_moved = (e_aid >= cfg.aid_blame) & (e_aid >= cfg.aid_ratio * e_gps) & (cfg.vehicle == "drone")
-    x_pick = jnp.where(imu_alarm, imu_pick, jnp.where(aid_moved, _S["flow"], _S["gps"]))
+    # the height check alone (GPS height vs baro; the GPS agrees with the flow horizontally): the baro's
+    # (a GPS ramp also moves the GPS velocity off the flow within ~2 s; the baro ramp's height error disturbs the
+    # dead reckoning a little through the flow scaling, so only the velocity check tells them apart)
+    z_pick = (cfg.hgt_h > 0) & (dz >= cfg.hgt_h) & (xpeak[1] < cfg.hgt_gps_frac)
+    # (before the flow tie-breaker: the baro also scales the flow velocity of its complementary filter)
+    x_pick = jnp.where(imu_alarm, imu_pick, jnp.where(z_pick, _S["baro"], jnp.where(aid_moved, _S["flow"], _S["gps"])))
     out = jnp.where(jnp.asarray(xraised, bool) & (jnp.max(p) < 1.0), x_pick, out)
+    # The IMU-propagated velocity left the GPS AND the flow velocity (a GPS ramp moves only the GPS's, a flow ramp only
+    # the flow's): an accelerometer bias the IMU-model channels missed (a slow ramp absorbed by their baseline), which
+    # also tilts the EKF attitude and so fails the GPS-vs-flow check in the body frame (it was blamed on the GPS).
+    lo = jnp.minimum(e_gps, e_aid)
+    imu_comp = ((lo >= cfg.imu_comp) & (jnp.maximum(e_gps, e_aid) <= cfg.aid_ratio * lo) & (mag < 1.0)
+                & (cfg.vehicle == "drone"))
+    out = jnp.where(~imu_alarm & imu_comp & jnp.asarray(settled, bool) & ((out == _S["gps"]) | (out == _S["flow"])),
+                    _S["accel"], out)
   return out.astype(jnp.int32)
 
 
@@ -529,7 +576,7 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
   quiet = jnp.all(scores < cfg.clear_frac) & ~jnp.asarray(hold, bool)
   # An alarm the cross-checks raised stays up while the GPS velocity still disagrees with the flow / odometry.
   vel_off = (jnp.zeros(4) if xchk is None else xchk)[1] >= 1.0
-  quiet = quiet & ~(state.xraised & vel_off)
+  quiet = quiet & ~(state.xraised & (vel_off | (False if cons is None else _hgt_off(cfg, state, cons))))
   quiet_time = jnp.where(state.alarm & quiet, state.quiet_time + dt, 0.0)
   clear = state.alarm & (quiet_time >= cfg.hold_s)
   alarm = (state.alarm | start) & ~clear
@@ -544,7 +591,15 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
   xchk = jnp.zeros(4) if xchk is None else xchk
   xpeak = jnp.where(start, xchk, jnp.where(in_window, jnp.maximum(state.xpeak, xchk),
                                            jnp.where(alarm, state.xpeak, 0.0)))
-  diag = jnp.where(alarm, diagnose(cfg, peak, cpeak, xpeak, xraised), -1).astype(jnp.int32)
+  # A height-check alarm blamed on the baro keeps listening to the GPS position check (its dead reckoning stays
+  # anchored to the trusted GPS, `position_check`): a GPS ramp with a vertical component can fail the height check
+  # before the horizontal ones; once the GPS leaves the dead reckoning within hgt_listen_s it is the GPS's (entered as
+  # velocity evidence, which `diagnose` weighs against the height check). Both horizontal checks creep up slowly in
+  # long baro alarms (the autopilot's EKF, fusing the ramp, tilts): hence the time limit.
+  late = (alarm & ~start & ~in_window & xraised & (state.diagnosis == _S["baro"])
+          & (tsa <= cfg.xcheck_window_s + cfg.hgt_listen_s))
+  xpeak = xpeak.at[1].set(jnp.where(late, jnp.maximum(xpeak[1], xchk[0]), xpeak[1]))
+  diag = jnp.where(alarm, diagnose(cfg, peak, cpeak, xpeak, xraised, alarm & ~in_window), -1).astype(jnp.int32)
   mask = jnp.where(alarm, jax.nn.one_hot(jnp.maximum(diag, 0), N_SENSORS), 0.0)
   return dict(alarm=alarm, peak=peak, cpeak=cpeak, xpeak=xpeak, xraised=xraised, diagnosis=diag, mask=mask,
               time_since_alarm=tsa, quiet_time=jnp.where(clear, 0.0, quiet_time),
@@ -563,16 +618,17 @@ def detector_update(cfg: DetectorConfig, state: DetectorState, readings: SensorR
   s, z = cusum_step(cfg, state.cusum, r, fresh)
   scores = s / jnp.asarray(cfg.h, jnp.float32) * used
   raised = jnp.any(scores > 1.0)
-  x_raised = cfg.xcheck & jnp.any(xchk[:2] > 1.0)
+  x_raised = cfg.xcheck & (jnp.any(xchk[:2] > 1.0) | _hgt_off(cfg, state, cons))
   sw = _switch(cfg, state, scores, raised, dt, hold, cons, xchk, x_raised)
   # The recovery switch handed back (the GPS is trusted again): the dead-reckoned positions restart there and the
-  # velocity cross-check restarts (its EMA still holds the attack's disagreement).
+  # velocity and height cross-checks restart (their EMAs still hold the attack's disagreement: an overt baro bias
+  # re-raised the height check on hand-back).
   cleared = state.alarm & ~sw["alarm"]
   return state.replace(cusum=s, scores=scores, residual=jnp.where(fresh, z, state.residual), time=state.time + dt,
                        dr=jnp.where(cleared, readings.gps_pos[None, :2], state.dr),
                        dr_e=jnp.where(cleared, 0.0, state.dr_e),
-                       cons_v=jnp.where(cleared, 0.0, state.cons_v), cons_w=state.cons_w.at[0].set(
-                           jnp.where(cleared, 0.0, state.cons_w[0])), **sw)
+                       cons_v=jnp.where(cleared, 0.0, state.cons_v), cons_z=jnp.where(cleared, 0.0, state.cons_z),
+                       cons_w=jnp.where(cleared, 0.0, state.cons_w), **sw)
 
 
 def oracle_update(state: DetectorState, attack: attacks_lib.AttackSchedule, t, dt, delay: float = 0.0,

@@ -29,6 +29,10 @@ GPS cross-checks (session 5; same 1024 missions, same seed, the CUSUM fields unc
 --xcheck-margin 1.2 x the sample maximum of each mission's largest |GPS - dead reckoning| (1 s EMA) / velocity chi
 (drone: 3.42 m / 5.50 -> dr_h 4.10 m, vel_h 6.60; per-mission q99 2.28 m / 4.93; rover, odometry: 1.72 m / 9.01 ->
 2.06 m, 10.81, its CUSUM fields kept from the earlier calibration, see the file's meta).
+Height cross-check hgt_h (issue #5, baro ramps; detector._hgt_off): the same margin x the sample maximum of each
+mission's largest |GPS height - baro| (3 s EMA). Drone: 1.32 m -> hgt_h 1.58 m (per-mission median 0.62, q99 1.12), from
+a fresh 1024-mission run (seed 0) whose other fields had moved with the session-5 autopilot changes and were not taken
+(file meta 'hgt_h_calibration'); the rover has none (hgt_h 0: off).
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ ASSETS = det._ASSETS
 CAL_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain", "suburban_streets",
               "urban_city_areas", "urban_green_areas", "urban_high_rise", "manufacturing_plant", "open_beach")
 FIELDS = ("scale", "h", "used", "k")
-XCHECK_FIELDS = ("dr_h", "vel_h")   # GPS cross-check alarm thresholds (optional in a file: defaults otherwise)
+XCHECK_FIELDS = ("dr_h", "vel_h", "hgt_h")   # cross-check alarm thresholds (optional in a file: defaults otherwise)
 
 
 def default_path(vehicle: str) -> str:
@@ -85,10 +89,11 @@ def _load(path: str, mtime_ns: int, vehicle: str | None) -> tuple:
   bad = [k for k in ("scale", "h", "used") if len(out[k]) != det.N_CHANNELS]
   bad += [k for k in ("scale", "h") if k not in bad and not all(math.isfinite(x) and x > 0 for x in out[k])]
   bad += ["used"] if "used" not in bad and not set(out["used"]) <= {0.0, 1.0} else []
-  bad += [k for k in ("k",) + XCHECK_FIELDS if k in out and not (math.isfinite(out[k]) and out[k] > 0)]
+  bad += [k for k in ("k",) + XCHECK_FIELDS
+          if k in out and not (math.isfinite(out[k]) and (out[k] > 0 or (k == "hgt_h" and out[k] == 0)))]
   if bad:
     raise ValueError(f"detector preset {path}: bad {', '.join(bad)} (need {det.N_CHANNELS} finite positive scale/h, "
-                     "used in {0, 1}, k > 0, dr_h / vel_h > 0)")
+                     "used in {0, 1}, k > 0, dr_h / vel_h > 0, hgt_h >= 0)")
   return tuple(out.items())
 
 
@@ -106,7 +111,7 @@ def load_preset(path: str, vehicle: str | None = None) -> dict:
 def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, batch: int = 64):
   """Fly len(keys) attack-free missions of `env` in worlds `world_ids` [N] for n_ticks ticks, in chunks of `batch`
   (the last padded: one compile). Returns numpy (|r| [N, T, C] float32, fresh [N, T, C] bool & valid, end [N] s:
-  how long each mission stayed valid, xmax [N, 2]: each mission's maximum of the raw GPS cross-checks,
+  how long each mission stayed valid, xmax [N, 3]: each mission's maximum of the raw GPS cross-checks,
   traces.xcheck_trace)."""
   import jax  # noqa: PLC0415
   import jax.numpy as jnp  # noqa: PLC0415
@@ -120,7 +125,7 @@ def record_free(env, base: det.DetectorConfig, keys, world_ids, n_ticks: int, ba
   r_all = np.zeros((n, n_ticks, det.N_CHANNELS), np.float32)
   f_all = np.zeros((n, n_ticks, det.N_CHANNELS), bool)
   end = np.zeros((n,), np.float32)
-  xmax = np.zeros((n, 2), np.float32)
+  xmax = np.zeros((n, 3), np.float32)
   for i in range(0, n, batch):
     idx = np.minimum(np.arange(i, i + batch), n - 1)
     tr = traces.record_ticks(env, keys[idx], free, n_ticks, jnp.asarray(world_ids[idx]))
@@ -165,7 +170,8 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
   cfg = det.calibrate(base, r, fresh, target_fpr)
   q_x = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
   x_raw = np.quantile(xmax, q_x, axis=0, method="higher")
-  cfg = dataclasses.replace(cfg, dr_h=float(xcheck_margin * x_raw[0]), vel_h=float(xcheck_margin * x_raw[1]))
+  cfg = dataclasses.replace(cfg, dr_h=float(xcheck_margin * x_raw[0]), vel_h=float(xcheck_margin * x_raw[1]),
+                            hgt_h=float(xcheck_margin * x_raw[2]))
   # In-sample statistics: per-mission max of the uncapped CUSUM S (k = 1), relative to the calibrated h.
   used = np.asarray(cfg.used) > 0
   q = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
@@ -184,8 +190,9 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
           "n_fresh": [int(x) for x in n_fresh], "h_raw": [float(x) for x in h_raw],
           "xcheck_margin": xcheck_margin, "xcheck_raw": [float(x) for x in x_raw],
           "xcheck_max_per_mission_q50_q90_q99_max": [[float(v) for v in np.quantile(xmax[:, j], [0.5, 0.9, 0.99, 1.0])]
-                                                     for j in range(2)],
-          "in_sample_false_alarms": float(np.mean((mission_score > 1.0) | np.any(xmax > [cfg.dr_h, cfg.vel_h], -1))),
+                                                     for j in range(3)],
+          "in_sample_false_alarms": float(np.mean((mission_score > 1.0)
+                                                  | np.any(xmax > [cfg.dr_h, cfg.vel_h, cfg.hgt_h], -1))),
           "in_sample_max_score": float(np.max(mission_score)),
           "in_sample_max_score_per_world": per_world,
           "calibration_s": round(time.time() - t0, 1)}
@@ -228,7 +235,7 @@ def main(argv=None):
   for c, u, s, h in zip(det.CHANNELS, cfg.used, cfg.scale, cfg.h):
     if u:
       print(f"  {c:10s} scale {s:9.4g}  h {h:8.2f}")
-  print(f"  GPS cross-checks: dr_h {cfg.dr_h:.2f} m, vel_h {cfg.vel_h:.2f}")
+  print(f"  GPS cross-checks: dr_h {cfg.dr_h:.2f} m, vel_h {cfg.vel_h:.2f}, hgt_h {cfg.hgt_h:.2f} m")
 
 
 if __name__ == "__main__":

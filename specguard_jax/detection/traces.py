@@ -97,16 +97,18 @@ def residual_trace(cfg: det.DetectorConfig, trace: TickTrace, dt: float):
 @functools.partial(jax.jit, static_argnames=("cfg", "dt"))
 def xcheck_trace(cfg: det.DetectorConfig, trace: TickTrace, dt: float):
   """Raw GPS cross-checks (detector.position_check) of a batch of traces with the alarm held down (the dead
-  reckoning stays anchored, as on an attack-free flight): [B, T, 2] = (min |GPS - DR| m, velocity chi), zero where
-  the check is not armed or the mission is over; for calibrating dr_h / vel_h."""
+  reckoning stays anchored, as on an attack-free flight): [B, T, 3] = (min |GPS - DR| m, velocity chi, |GPS height -
+  baro| m (detector._hgt_off)), zero where the check is not armed or the mission is over; for calibrating dr_h / vel_h /
+  hgt_h."""
 
   def one(tr):
     def body(state, x):
       rd, ek, act = x
       _, _, state = det.residuals(cfg, state, rd, ek, act, dt)
-      _, state = det.consistency(cfg, state, rd, ek, dt)
+      cons, state = det.consistency(cfg, state, rd, ek, dt)
       xchk, armed, state = det.position_check(cfg, state, rd, ek, dt)
-      return state, xchk[:2] * jnp.asarray([cfg.dr_h, cfg.vel_h]) * armed
+      hgt = cons[2] * (cons[4] > 0.5) * (state.airborne_time >= cfg.xcheck_arm_s)
+      return state, jnp.concatenate([xchk[:2] * jnp.asarray([cfg.dr_h, cfg.vel_h]) * armed, hgt[None]])
     _, x = jax.lax.scan(body, det.detector_init(cfg), (tr.readings, tr.ekf, tr.actuation))
     return x * tr.valid[:, None]
 

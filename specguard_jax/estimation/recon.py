@@ -68,6 +68,7 @@ _TILT_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ATT][:2]   # world-frame attitude
 _YAW_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.ATT][2:]
 _POS_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.POS][:2]   # error-state rows of the horizontal position / velocity
 _VEL_H_IDX = list(range(ekf_lib.N_ERR))[ekf_lib.VEL][:2]
+_Z_IDX = [list(range(ekf_lib.N_ERR))[ekf_lib.POS][2], list(range(ekf_lib.N_ERR))[ekf_lib.VEL][2]]   # height, vz
 # [11, 6] EKF channel (ekf.CHANNELS) -> the sensor it measures (the detector's map; odometry: none).
 _CHANNEL_MASK = (np.asarray(CHANNEL_SENSOR[:len(ekf_lib.CHANNELS)])[:, None]
                  == np.arange(len(SENSOR_NAMES))[None, :]).astype(np.float32)
@@ -114,6 +115,9 @@ class ReconConfig:
                                   # estimate is still under attack: `suspect` (holds the recovery switch)
   anchor_pos_sigma: float = 2.0   # m: horizontal position uncertainty of the GPS-free anchor (recon_tick `anchor`)
   anchor_vel_sigma: float = 0.5   # m/s: its horizontal velocity uncertainty
+  baro_z_sigma: float = 3.0       # m: height uncertainty of the shadow when the barometer is newly blamed (a ramp
+  baro_vz_sigma: float = 0.5      # m/s: and vertical speed)   dragged the EKF's height before the alarm: the GPS
+                                  # height pulls it back within ~1 s instead of ~10 s)
 
   def ekf_cfg(self):
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
@@ -301,6 +305,19 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   new_accel = mask[ai] & ~(state.blamed[ai] > 0)
   shadow = shadow.replace(accel_bias=jnp.where(new_accel, 0.0, shadow.accel_bias),
                           P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.model_accel_sigma ** 2, new_accel))
+  # ... and one no longer blamed while the alarm stays up (the diagnosis changed): the sensor is back, its bias state
+  # returns to the last trusted estimate (the model-error state it held drove a GPS-free shadow off course).
+  un_accel = alarm & ~rising & ~mask[ai] & (state.blamed[ai] > 0)
+  e_old = _unpack(ck.ckpt_get(state.ckpt, cfg.window - 1)[0])   # oldest trusted entry
+  shadow = shadow.replace(accel_bias=jnp.where(un_accel, e_old["accel_bias"], shadow.accel_bias),
+                          P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.ekf_cfg().init_accel_bias_sigma ** 2,
+                                                un_accel))
+  # A newly blamed barometer (the EKF's height reference): the height / vertical speed are uncertain by what it dragged.
+  bi = SENSOR_NAMES.index("baro")
+  new_baro = mask[bi] & ~(state.blamed[bi] > 0)
+  shadow = shadow.replace(P=ekf_lib.reset_block(ekf_lib.reset_block(shadow.P, _Z_IDX[:1], cfg.baro_z_sigma ** 2,
+                                                                    new_baro), _Z_IDX[1:], cfg.baro_vz_sigma ** 2,
+                                                new_baro))
   if anchor is not None:   # a newly compromised GPS: horizontal position / velocity from the GPS-free anchor
     gpi = SENSOR_NAMES.index("gps")
     anchor = jnp.asarray(anchor, jnp.float32)
@@ -323,7 +340,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   zero = jnp.zeros(())
   rd = readings.replace(
       gyro=jnp.where(mask[gi], rate_new + shadow.gyro_bias, readings.gyro),
-      accel=jnp.where(mask[ai], f_b + shadow.accel_bias, readings.accel),
+      # (the model's specific force as the measurement: the shadow subtracts its accel-bias state, which so learns
+      # the model's error; adding that state here too would cancel it and leave the model error uncorrected)
+      accel=jnp.where(mask[ai], f_b, readings.accel),
       gps_fresh=jnp.where(gps, zero, readings.gps_fresh), mag_fresh=jnp.where(mag, zero, readings.mag_fresh),
       baro_fresh=jnp.where(baro, zero, readings.baro_fresh), flow_fresh=jnp.where(flow, zero, readings.flow_fresh))
   # With a model gyro / accelerometer the shadow's gyro- / accel-bias state tracks the model's error: inflate its
