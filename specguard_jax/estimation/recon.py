@@ -173,7 +173,7 @@ def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
   """Empty checkpoint, inactive; `ekf_state` is a template for the shadow filter (e.g. the env's initial EKF)."""
   return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
                     active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool),
-                    blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32), gvel=jnp.full(3, jnp.nan),
+                    blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32), gvel=jnp.full(3, jnp.nan, jnp.float32),
                     gage=jnp.zeros(()), f_sum=jnp.zeros(3), acc_w=jnp.zeros(3), f_lp=jnp.zeros(3))
 
 
