@@ -143,11 +143,11 @@ class ReconState:
   since: jnp.ndarray
   suspect: jnp.ndarray
   blamed: jnp.ndarray
-  gvel: jnp.ndarray = None
-  gage: jnp.ndarray = None
-  f_sum: jnp.ndarray = None
-  acc_w: jnp.ndarray = None
-  f_lp: jnp.ndarray = None
+  gvel: jnp.ndarray
+  gage: jnp.ndarray
+  f_sum: jnp.ndarray
+  acc_w: jnp.ndarray
+  f_lp: jnp.ndarray
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
