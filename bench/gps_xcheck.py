@@ -9,7 +9,10 @@ drawn from the same key), one batched, jitted `lax.scan` of env steps over all m
 detected, detection delay (s after onset, median / max), diagnosis correct (the sensor blamed 1.2 s after the first
 alarm at or after onset), complete, crash (+collision), stall, new spec violation after onset, final horizontal
 distance to the last waypoint (m, median / p90), the horizontal reconstruction error at the alarm (|x_rec - truth| m,
-median / max over the 5 s after the alarm) and the attack-free false alarms (missions with any alarm).
+median / max over the 5 s after the alarm), the diagnosis sequence of the first alarm after onset (first blamed
+sensor; missions where another sensor was blamed at some tick; missions where the reconstruction replaced a gyro /
+accelerometer that was not the target; --verbose prints the run-length sequence, --evidence the diagnosis evidence
+peak / cpeak / xpeak 0.1 s and 1.2 s after the alarm) and the attack-free false alarms (missions with any alarm).
 --no-xcheck: the residual CUSUM alone raises the alarm (DetectorConfig(xcheck=False)); the reconstruction still
 starts from the dead-reckoned position when the GPS is blamed. --baseline: neither (for code before the cross-check;
 run from that checkout).
@@ -34,6 +37,19 @@ WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_moun
 SENSORS = ("gps", "flow")
 
 
+def _seq(d, names):
+  """Run-length string of a diagnosis sequence (env steps of 0.1 s), e.g. 'accel x3 > gyro x40'."""
+  out, prev, n = [], None, 0
+  for x in list(d) + [None]:
+    if x == prev:
+      n += 1
+      continue
+    if prev is not None:
+      out.append(f"{names[int(prev)] if prev >= 0 else '-'} x{n}")
+    prev, n = x, 1
+  return " > ".join(out)
+
+
 def main(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   ap.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
@@ -45,6 +61,7 @@ def main(argv=None):
   ap.add_argument("--baseline", action="store_true", help="code before the cross-check (no xcheck field)")
   ap.add_argument("--json", default="")
   ap.add_argument("--verbose", action="store_true", help="one line per attacked mission")
+  ap.add_argument("--evidence", action="store_true", help="with --verbose: the diagnosis evidence at the alarm")
   ap.add_argument("--sensors", default=",".join(SENSORS), help="attacked sensors, stealthy and overt each")
   a = ap.parse_args(argv)
   if a.missions < 1 or a.free < 0 or a.seconds <= 0:
@@ -85,7 +102,9 @@ def main(argv=None):
       sim = nx.info["sim"]
       rec = dict(alarm=nx.info["alarm"] > 0, diag=nx.info["diagnosis"], t=nx.info["time"], done=nx.done > 0,
                  viol=nx.info["spec_robustness"] < 0,
-                 rec_err=jnp.linalg.norm(sim["x_rec"][:, :2] - sim["truth"].pos[:, :2], axis=-1))
+                 rec_err=jnp.linalg.norm(sim["x_rec"][:, :2] - sim["truth"].pos[:, :2], axis=-1),
+                 blamed=sim["recon"].blamed > 0.5, peak=sim["det"].peak, cpeak=sim["det"].cpeak,
+                 xpeak=sim["det"].xpeak, xraised=sim["det"].xraised)
       return nx, rec
 
     s, recs = jax.lax.scan(body, s, None, length=T)
@@ -105,14 +124,16 @@ def main(argv=None):
         f"{'off' if a.no_xcheck or a.baseline else 'on'}")
   print("| setting | detected | delay s (med / max) | diagnosis correct | complete | crash (+coll) | stall | "
         "new violation after onset | final dist m (med / p90) | recon err 5 s after alarm m (med / max) | "
-        "recon err whole alarm m (med / max) |")
-  print("|---|---|---|---|---|---|---|---|---|---|---|")
+        "recon err whole alarm m (med / max) | first blame | other sensor blamed in the 1st alarm | "
+        "other IMU sensor replaced |")
+  print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
   for si, (s, p) in enumerate(list(SETTINGS) + [(None, None)]):
     idx = np.flatnonzero(sid == si)
     t = recs["t"][:, idx]
     onset = atk.onset[idx]
     alarm = recs["alarm"][:, idx]
     det, delay, diag_ok, viol_new, err, err_all = [], [], [], [], [], []
+    first_blame, wrong_any, wrong_imu = [], [], []
     for c, i in enumerate(idx):
       after = alarm[:, c] & (t[:, c] >= onset[c])
       if s is None:
@@ -130,6 +151,14 @@ def main(argv=None):
         err.append(float(np.max(recs["rec_err"][k:k + 50, i])))
         span = alarm[:, c] & (t[:, c] >= t[k, c]) & ~recs["done"][:, i]
         err_all.append(float(np.max(recs["rec_err"][span, i])) if span.any() else 0.0)
+        # the diagnosis sequence over this alarm (env steps of 0.1 s): first blame, any other sensor blamed, and a
+        # gyro / accelerometer that is not the target replaced by the reconstruction (`blamed` mask)
+        end = k + int(np.argmax(~alarm[k:, c])) if (~alarm[k:, c]).any() else len(t)
+        dseq = recs["diag"][k:end, i]
+        first_blame.append(names[int(dseq[0])])
+        wrong_any.append(bool(np.any((dseq >= 0) & (dseq != names.index(s)))))
+        bl = recs["blamed"][k:end, i]
+        wrong_imu.append(bool(any(bl[:, names.index(x)].any() for x in ("gyro", "accel") if x != s)))
       if a.verbose:
         b = atk.bias[i][names.index(s)]
         late = [(env.spec_names[j], round(float(first[j]), 1)) for j in range(len(first))
@@ -137,9 +166,18 @@ def main(argv=None):
         print(f"  {s} {p} #{c:2d}: onset {onset[c]:5.1f} |b| {np.linalg.norm(b):5.1f} ramp {atk.ramp_time[i]:4.1f} "
               f"dur {atk.duration[i]:4.1f} delay {delay[-1] if hit else float('nan'):5.1f} "
               f"diag {names[int(recs['diag'][min(k + 12, len(t) - 1), i])] if hit else '-'} "
-              f"complete {int(ep['complete'][i])} final {fin[i]:6.1f} m rec_err {err[-1] if hit else float('nan'):5.1f} "
+              f"first {first_blame[-1] if hit else '-'} seq {_seq(recs['diag'][k:end, i], names) if hit else '-'} "
+              f"complete {int(ep['complete'][i])} crash {int(ep['crash'][i])} "
+              f"final {fin[i]:6.1f} m rec_err {err[-1] if hit else float('nan'):5.1f} "
               f"(whole alarm {err_all[-1] if hit else float('nan'):5.1f}) "
               f"new violations {late}")
+        if hit and a.evidence:
+          print(f"      at alarm +0.1 s: peak {np.round(recs['peak'][k + 1, i], 2).tolist()} cpeak "
+                f"{np.round(recs['cpeak'][k + 1, i], 2).tolist()} xpeak {np.round(recs['xpeak'][k + 1, i], 2).tolist()} "
+                f"xraised {bool(recs['xraised'][k + 1, i])}; at +1.2 s: peak "
+                f"{np.round(recs['peak'][min(k + 12, len(t) - 1), i], 2).tolist()} cpeak "
+                f"{np.round(recs['cpeak'][min(k + 12, len(t) - 1), i], 2).tolist()} xpeak "
+                f"{np.round(recs['xpeak'][min(k + 12, len(t) - 1), i], 2).tolist()}")
     row = {"missions": int(len(idx)), "detected": int(np.sum(det))}
     if s is not None:
       row.update(delay_med=float(np.median(delay)) if delay else None, delay_max=float(np.max(delay)) if delay else None,
@@ -149,13 +187,16 @@ def main(argv=None):
                  final_dist_med=float(np.median(fin[idx])), final_dist_p90=float(np.percentile(fin[idx], 90)),
                  rec_err_med=float(np.median(err)) if err else None, rec_err_max=float(np.max(err)) if err else None,
                  rec_err_alarm_med=float(np.median(err_all)) if err_all else None,
-                 rec_err_alarm_max=float(np.max(err_all)) if err_all else None)
+                 rec_err_alarm_max=float(np.max(err_all)) if err_all else None,
+                 first_blame={x: first_blame.count(x) for x in sorted(set(first_blame))},
+                 wrong_blame_any=int(np.sum(wrong_any)), wrong_imu_replaced=int(np.sum(wrong_imu)))
       f = lambda x: "-" if x is None else f"{x:.1f}"
       print(f"| {s} {p} | {row['detected']}/{len(idx)} | {f(row['delay_med'])} / {f(row['delay_max'])} | "
             f"{row['diag_ok']}/{row['detected']} | {row['complete']} | {row['crash']} (+{row['collision']}) | "
             f"{row['stall']} | {row['new_violation']} | {row['final_dist_med']:.1f} / {row['final_dist_p90']:.1f} | "
             f"{f(row['rec_err_med'])} / {f(row['rec_err_max'])} | {f(row['rec_err_alarm_med'])} / "
-            f"{f(row['rec_err_alarm_max'])} |")
+            f"{f(row['rec_err_alarm_max'])} | {row['first_blame']} | {row['wrong_blame_any']} | "
+            f"{row['wrong_imu_replaced']} |")
     else:
       row.update(complete=int(ep["complete"][idx].sum()))
       print(f"| attack-free | false alarms {row['detected']}/{len(idx)} | | | {row['complete']} | | | | | | |")

@@ -1,8 +1,9 @@
 """Reconstruction with the gyroscope blamed (constructed flights, shipped drone dynamics model; then one closed-loop
 stealthy gyro ramp in the env). A slow gyro ramp drags the autopilot's attitude before the alarm: the shadow must not
 start from that attitude (re-levelled from the GPS-derived acceleration and the model's specific force, yaw from the
-magnetometer), the model rate's correction must not saturate over a long alarm, and a blamed gyro stays replaced
-when the diagnosis later moves to another sensor."""
+magnetometer), the model rate's correction must not saturate over a long alarm, and a gyro blamed for longer than
+ReconConfig.sticky_after_s stays replaced when the diagnosis later moves to another sensor (a shorter, transient blame
+does not)."""
 
 import jax
 import jax.numpy as jnp
@@ -117,17 +118,35 @@ def test_model_rate_correction_does_not_saturate_over_a_long_alarm(setup):
   assert max(gbias) < 0.9 * cfg.model_rate_limit, max(gbias)
 
 
-def test_blamed_gyro_stays_replaced_when_the_diagnosis_moves(setup):
+def _gyro_then_gps(setup, n_gyro):
+  """Gyro blamed for n_gyro ticks from the alarm, then the GPS; yields (trusted readings) of the GPS-blamed ticks."""
   cfg, params, tick = setup
   rd0, u, _ = _tilted_flight(params, 0)
   e = ekf_lib.ekf_init(cfg.ekf, rd0)
   st = recon.recon_init(cfg, e)
-  for k in range(N_PRE + 40):
+  for k in range(N_PRE + n_gyro + 20):
     rd, u, _ = _tilted_flight(params, k)
     rd = rd.replace(gyro=jnp.asarray([0.5, 0.0, 0.0], jnp.float32))
     alarm = jnp.asarray(k >= N_PRE)
-    mask = jnp.where(alarm, jnp.where(k < N_PRE + 20, _mask("gyro"), _mask("gps")), 0.0)
+    mask = jnp.where(alarm, jnp.where(k < N_PRE + n_gyro, _mask("gyro"), _mask("gps")), 0.0)
     st, _, _, rd_ctrl = tick(st, e, rd, u, mask, alarm)
-    if k >= N_PRE + 20:
-      assert not np.allclose(np.asarray(rd_ctrl.gyro), [0.5, 0.0, 0.0])        # still the model's rate
-      assert float(rd_ctrl.gps_fresh) == 0.0                                    # and the newly blamed GPS is out
+    if k >= N_PRE + n_gyro:
+      yield rd_ctrl
+
+
+def test_blamed_gyro_stays_replaced_when_the_diagnosis_moves(setup):
+  cfg = setup[0]
+  n = int(np.ceil(cfg.sticky_after_s / DT)) + 5   # blamed longer than sticky_after_s
+  for rd_ctrl in _gyro_then_gps(setup, n):
+    assert not np.allclose(np.asarray(rd_ctrl.gyro), [0.5, 0.0, 0.0])        # still the model's rate
+    assert float(rd_ctrl.gps_fresh) == 0.0                                    # and the newly blamed GPS is out
+
+
+def test_transient_gyro_blame_does_not_stick(setup):
+  """A gyro blamed for a few ticks only (a quick GPS ramp's first ticks, issue #5) is not kept replaced: the
+  shadow flies on the gyro again once the diagnosis has moved to the GPS."""
+  cfg = setup[0]
+  n = max(1, int(cfg.sticky_after_s / DT) // 3)
+  for rd_ctrl in _gyro_then_gps(setup, n):
+    np.testing.assert_allclose(np.asarray(rd_ctrl.gyro), [0.5, 0.0, 0.0])    # the sensor's rate
+    assert float(rd_ctrl.gps_fresh) == 0.0

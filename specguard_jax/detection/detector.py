@@ -48,6 +48,11 @@ too (a baro ramp drags the EKF height, the baro being its height reference, and 
 the baro's while the GPS velocity agrees with the flow, and turns to the GPS if the GPS position leaves the (still
 anchored) dead reckoning within `hgt_listen_s` (a GPS ramp with a vertical component). Accelerometer alarms that the
 IMU-model channels missed (slow ramps): both complementary-filter innovations large and alike (`imu_comp`).
+IMU vs GPS from physics (drone; `diagnose`, issue #5): an accelerometer blame from these aiding patterns needs the
+accelerometer itself off the model's specific force (rotor thrust + drag) by `acc_explain` x the IMU filters' drift,
+else it is a gyro bias that tilted the EKF attitude (the accelerometer agrees with the thrust, the attitude does not);
+and an IMU-looking alarm whose GPS filter moved while the flow filter stayed with the IMU (`gps_moved`) is the GPS's
+(a quick GPS ramp trips the GPS-velocity CUSUM before the 3 s velocity cross-check has caught up).
 
 Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
 alarm of the cross-checks alone also waits for the velocity and height cross-checks to agree again); on hand-back
@@ -82,6 +87,7 @@ _GPS_H = np.array([1, 1, 0, 1, 1, 1] + [0] * 11, np.float32)   # GPS horizontal 
 _GPS_Z = 2
 _MAG_CH, _FLOW_CH = ekf_lib.CHANNELS.index("mag"), ekf_lib.CHANNELS.index("flow_x")   # flow_x, flow_y adjacent
 _IMU0 = len(ekf_lib.CHANNELS)
+N_XCHK = 6   # position_check's xchk entries
 _GROUND_Z_DRONE = 0.12
 _ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
 
@@ -149,6 +155,11 @@ class DetectorConfig:
   aid_ratio: float = 2.0            #   innovation reaches this and this multiple of the GPS's; else the GPS's
   imu_comp: float = 0.8             # m/s; both IMU-filter innovations this large and within aid_ratio of each other:
                                     #   the IMU moved away from GPS and flow alike (drone: the accelerometer's)
+  acc_explain: float = 0.3         # 1/s; an accelerometer blame needs its horizontal disagreement with the model
+                                    #   (m/s^2) >= this x the IMU filters' drift (m/s); else a tilted EKF: the gyro
+  gps_moved: float = 0.5           # m/s; an IMU-looking alarm is the GPS's when the GPS filter innovation reaches this,
+  gps_ratio: float = 3.0            #   this multiple of the aiding filter's, and the aiding filter's stays under
+  aid_quiet: float = 0.25           #   this (m/s): the GPS moved away from an IMU that the flow agrees with
   xcheck_window_s: float = 1.0      # s; diagnosis window of an alarm raised by the cross-checks alone
   mass: float = 1.5
   inertia: tuple = (0.029125, 0.029125, 0.055225)
@@ -164,6 +175,7 @@ class DetectorConfig:
   warmup_s: float = 3.0
   baseline_tau: float = 2.0
   slow_tau: float = 20.0        # s; slow IMU residual baseline (no alarm): the accel reference while an IMU is blamed
+  acc_ema_s: float = 1.0        # s; smoothing of the accelerometer-vs-model residual off the slow baseline (diagnosis)
   warmup_tau: float = 0.5
   rate_tau: float = 0.5
   k_quantile: float = 0.999
@@ -227,10 +239,12 @@ class DetectorState:
   aiding sample (flow rad/s or odometry speed m/s, 0); aid_age [] s since it; comp [2, 2] complementary IMU filter
   velocities (m/s, pulled to the GPS / the aiding velocity); comp_e [2, 2] EMA of their innovations (m/s);
   aid_vel [2] the aiding sensor's horizontal world velocity (m/s, EMA over `aid_vel_tau`; no IMU, no GPS);
-  xchk [4] (|GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation|, |aiding innovation| m/s); xpeak [4] its max
-  during the diagnosis window; xraised [] bool the current alarm was raised by the cross-checks alone.
+  xchk [N_XCHK] (|GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation|, |aiding innovation| m/s, |acc_e| body
+  horizontal, |acc_e| body z m/s^2); xpeak [N_XCHK] its max during the diagnosis window; xraised [] bool the current
+  alarm was raised by the cross-checks alone.
   base_slow [6]: slow IMU residual baseline (`slow_tau`, frozen while an alarm is up): the accelerometer's reference
-  while an IMU sensor is blamed.
+  while an IMU sensor is blamed.  acc_e [3]: accelerometer - model specific force - base_slow, EMA over acc_ema_s
+  (m/s^2, body; 0 until warm): an accelerometer bias shows here, a gyro bias (a tilted EKF) does not.
   """
   cusum: jnp.ndarray
   scores: jnp.ndarray
@@ -264,6 +278,7 @@ class DetectorState:
   xpeak: jnp.ndarray
   xraised: jnp.ndarray
   base_slow: jnp.ndarray
+  acc_e: jnp.ndarray
 
 
 def detector_init(cfg: DetectorConfig) -> DetectorState:
@@ -277,8 +292,8 @@ def detector_init(cfg: DetectorConfig) -> DetectorState:
                        cpeak=jnp.zeros(5), dr=jnp.full((4, 2), jnp.nan), dr_e=jnp.zeros((4, 2)), aid=jnp.zeros(2),
                        aid_age=jnp.full((), 1e3),
                        comp=jnp.full((2, 2), jnp.nan), comp_e=jnp.zeros((2, 2)), aid_vel=jnp.full((2,), jnp.nan),
-                       xchk=jnp.zeros(4), xpeak=jnp.zeros(4),
-                       xraised=jnp.zeros((), bool), base_slow=jnp.zeros(6))
+                       xchk=jnp.zeros(N_XCHK), xpeak=jnp.zeros(N_XCHK),
+                       xraised=jnp.zeros((), bool), base_slow=jnp.zeros(6), acc_e=jnp.zeros(3))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -340,10 +355,15 @@ def residuals(cfg: DetectorConfig, state: DetectorState, readings: SensorReading
   base_slow = jnp.where(warm & ~state.alarm, state.base_slow + (e - state.base_slow) * min(1.0, dt / cfg.slow_tau),
                         jnp.where(warm, state.base_slow, baseline))
   baseline = jnp.where(imu_blamed, jnp.concatenate([state.base_slow[:3], state.baseline[3:]]), baseline)
+  # accelerometer vs the model's specific force, off the slow (pre-alarm) baseline, smoothed (diagnosis only: an
+  # accelerometer bias shows here in all three axes; a gyro bias that tilts the EKF does not)
+  acc_e = jnp.where(warm, state.acc_e + min(1.0, dt / cfg.acc_ema_s) * (e[:3] - state.base_slow[:3] - state.acc_e),
+                    0.0)
   rate_model = rate_pred + (readings.gyro - rate_pred) * min(1.0, dt / cfg.rate_tau)
   rate_model = jnp.where(airborne & jnp.all(jnp.isfinite(rate_model)), rate_model, readings.gyro)
   fresh = jnp.concatenate([fresh_ekf, ch & warm])
-  new = state.replace(baseline=baseline, rate_model=rate_model, airborne_time=airborne_time, base_slow=base_slow)
+  new = state.replace(baseline=baseline, rate_model=rate_model, airborne_time=airborne_time, base_slow=base_slow,
+                      acc_e=acc_e)
   return jnp.concatenate([r_ekf, out]), fresh, new
 
 
@@ -415,7 +435,8 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   to the GPS velocity and to the aiding velocity (`comp_tau`); the EMA (`comp_ema`) of each innovation says which
   sensor's velocity CHANGED without the IMU seeing it (a GPS ramp steps the GPS velocity at its onset; a flow ramp
   keeps moving the flow velocity; the IMU-propagated velocity is moved by neither).
-  Returns (xchk [4] = (min |GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation| m/s, |aiding innovation| m/s),
+  Returns (xchk [N_XCHK] = (min |GPS - DR| / dr_h, velocity chi / vel_h, |GPS innovation| m/s, |aiding innovation|
+  m/s, then, not armed-gated, |acc_e| horizontal and vertical m/s^2 (`residuals`)),
   armed [] bool (aiding velocity available, airborne/driving >= xcheck_arm_s, velocity check available), new state).
   """
   r = quat_to_rot(ekf.quat)
@@ -463,6 +484,8 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   armed = ok & gps_ok & (state.airborne_time >= cfg.xcheck_arm_s) & (state.cons[3] > 0.5)
   xchk = jnp.stack([d / cfg.dr_h, chi / cfg.vel_h, jnp.linalg.norm(comp_e[0]), jnp.linalg.norm(comp_e[1])])
   xchk = jnp.where(jnp.isfinite(xchk), xchk, 0.0) * armed
+  acc = jnp.stack([jnp.linalg.norm(state.acc_e[:2]), jnp.abs(state.acc_e[2])])
+  xchk = jnp.concatenate([xchk, jnp.where(jnp.isfinite(acc), acc, 0.0)])
   return xchk, armed, state.replace(dr=dr, dr_e=dr_e, aid=aid, aid_age=aid_age, comp=comp, comp_e=comp_e,
                                     aid_vel=aid_vel, xchk=xchk)
 
@@ -491,8 +514,8 @@ def cusum_step(cfg: DetectorConfig, s, r, fresh):
 
 def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, settled=True):
   """Sensor index (int32 []) blamed for per-channel evidence `peak` [C] (scores) and the GPS cross-checks `cons` [5]
-  during the diagnosis window (`consistency`; None: not available); see the module docstring. xpeak [4]: the peak of
-  `position_check`'s xchk in the window; xraised: the alarm was raised by the cross-checks alone. While no CUSUM
+  during the diagnosis window (`consistency`; None: not available); see the module docstring. xpeak [N_XCHK]: the
+  peak of `position_check`'s xchk in the window; xraised: the alarm was raised by the cross-checks alone. While no CUSUM
   score has reached 1 such an alarm is the GPS's, or the optical flow's when the flow velocity moved without the
   IMU seeing it (its complementary-filter innovation >= aid_blame and >= aid_ratio x the GPS's), or an IMU sensor's
   when the IMU-model channels say so. settled [] bool: the diagnosis window is over (the `imu_comp` pattern is read
@@ -561,13 +584,31 @@ def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, se
                 & (cfg.vehicle == "drone"))
     out = jnp.where(~imu_alarm & imu_comp & jnp.asarray(settled, bool) & ((out == _S["gps"]) | (out == _S["flow"])),
                     _S["accel"], out)
+    # An accelerometer blame from that pattern (or the aiding pattern above) must be backed by the accelerometer
+    # itself: a gyro bias tilts the EKF attitude, so the IMU filters drift from GPS and flow alike too, but the
+    # accelerometer still agrees with the model's specific force (rotor thrust + drag; `residuals`' acc_e, horizontal
+    # m/s^2 = xpeak[4]). Under acc_explain (1/s) x the filters' drift (m/s) it is the gyro's (such ramps were blamed on
+    # the accelerometer for the whole alarm and the vehicle flipped while the wrong sensor was replaced).
+    hi = jnp.maximum(e_gps, e_aid)
+    # (not with a vertical velocity pattern, `accel_vert`: a tilt moves the velocity horizontally, a vertical
+    # accelerometer bias mostly vertically with little horizontal disagreement)
+    tilt = ((lo >= cfg.imu_comp) & (hi <= cfg.aid_ratio * lo) & (xpeak[4] < cfg.acc_explain * hi) & ~accel_vert
+            & (cfg.vehicle == "drone"))
+    out = jnp.where(~imu_alarm & tilt & jnp.asarray(settled, bool) & (out == _S["accel"]), _S["gyro"], out)
+    # ... and the converse: the GPS velocity left the IMU-propagated one while the flow velocity stayed with it (a GPS
+    # spoof; an IMU bias moves the IMU away from both). A quick GPS ramp trips the GPS-velocity CUSUM at its onset
+    # with the velocity pattern of an IMU bias (no position jump, the 3 s velocity cross-check still under cons_thr):
+    # it was blamed on the accelerometer, or for a tick on the gyro, before the cross-check caught up.
+    gps_moved = ((e_gps >= cfg.gps_moved) & (e_gps >= cfg.gps_ratio * e_aid) & (e_aid < cfg.aid_quiet) & (mag < c)
+                 & (cfg.vehicle == "drone"))
+    out = jnp.where(~imu_alarm & gps_moved & ((out == _S["accel"]) | (out == _S["gyro"])), _S["gps"], out)
   return out.astype(jnp.int32)
 
 
 def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=False, cons=None, xchk=None,
             x_raised=False):
   """Alarm latch + diagnosis window + recovery hold (`hold` [] bool: an outside check, e.g. state reconstruction's,
-  says the attack is still on: not quiet; `cons` [5]: this tick's GPS cross-checks, None: unavailable; `xchk` [4]:
+  says the attack is still on: not quiet; `cons` [5]: this tick's GPS cross-checks, None: unavailable; `xchk` [N_XCHK]:
   this tick's `position_check`, None: unavailable; `x_raised` [] bool: the cross-checks raise the alarm, `raised`
   being the CUSUM's). Returns the updated alarm-related fields."""
   x_only = jnp.asarray(x_raised, bool) & ~raised
@@ -575,7 +616,7 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
   start = raised & ~state.alarm
   quiet = jnp.all(scores < cfg.clear_frac) & ~jnp.asarray(hold, bool)
   # An alarm the cross-checks raised stays up while the GPS velocity still disagrees with the flow / odometry.
-  vel_off = (jnp.zeros(4) if xchk is None else xchk)[1] >= 1.0
+  vel_off = (jnp.zeros(N_XCHK) if xchk is None else xchk)[1] >= 1.0
   quiet = quiet & ~(state.xraised & (vel_off | (False if cons is None else _hgt_off(cfg, state, cons))))
   quiet_time = jnp.where(state.alarm & quiet, state.quiet_time + dt, 0.0)
   clear = state.alarm & (quiet_time >= cfg.hold_s)
@@ -588,7 +629,7 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
   cons = jnp.zeros(5) if cons is None else cons
   cpeak = jnp.where(start, cons, jnp.where(in_window, jnp.maximum(state.cpeak, cons),
                                            jnp.where(alarm, state.cpeak, 0.0)))
-  xchk = jnp.zeros(4) if xchk is None else xchk
+  xchk = jnp.zeros(N_XCHK) if xchk is None else xchk
   xpeak = jnp.where(start, xchk, jnp.where(in_window, jnp.maximum(state.xpeak, xchk),
                                            jnp.where(alarm, state.xpeak, 0.0)))
   # A height-check alarm blamed on the baro keeps listening to the GPS position check (its dead reckoning stays

@@ -15,8 +15,8 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
     (rotor-thrust torques), which the shadow EKF then corrects with the remaining aiding (GPS velocity, mag, flow)
     through its attitude / gyro-bias states (the latter folded into the model rate every tick); when the gyro is
     newly blamed, the attitude its spoofed rates dragged the shadow to is re-levelled (`_relevel`: gravity reference
-    from the GPS velocity and the model's specific force, magnetometer yaw), and a blamed gyro stays replaced until
-    the hand-back;
+    from the GPS velocity and the model's specific force, magnetometer yaw), and a gyro blamed for `sticky_after_s`
+    stays replaced until the hand-back;
   * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag); the
     shadow's accel-bias state then restarts and tracks the model's error (mass / thrust-gain uncertainty, larger
     clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back.
@@ -106,6 +106,8 @@ class ReconConfig:
   relevel_alpha: float = 0.3       # EMA weight per GPS sample of the gravity reference (ReconState gvel..f_lp)
   sticky_gyro: bool = True         # a gyroscope blamed once stays replaced until the hand-back, even when the diagnosis
                                    # moves on to another sensor (flying on the spoofed rates again flips the vehicle)
+  sticky_after_s: float = 0.5      # s; ... once it has been blamed this long without a break (a transient gyro blame
+                                   # of a GPS ramp's first ticks kept the shadow on the model rate for the whole alarm)
   # With the accelerometer replaced by the model's specific force, the shadow's accel-bias state tracks the model's
   # error (mass and thrust-gain uncertainty: up to ~2 m/s^2 vertically), not the sensor's bias:
   model_accel_sigma: float = 1.0  # m/s^2: its standard deviation when the accelerometer is (newly) replaced
@@ -135,7 +137,8 @@ class ReconState:
   Gravity reference (_relevel; updated every tick): gvel [3] GPS velocity of the last sample (m/s, NaN before the
   first), gage [] s since it, f_sum [3] the model's specific force integrated since it (m/s), acc_w [3] EMA of the
   world acceleration between GPS samples (m/s^2), f_lp [3] EMA of the mean model specific force over the same
-  intervals (m/s^2, body)."""
+  intervals (m/s^2, body).  gyro_t: [] s the gyroscope has been blamed without a break in this alarm
+  (`sticky_after_s`)."""
   ckpt: ck.CheckpointState
   shadow: Any
   rate: jnp.ndarray
@@ -148,6 +151,7 @@ class ReconState:
   f_sum: jnp.ndarray
   acc_w: jnp.ndarray
   f_lp: jnp.ndarray
+  gyro_t: jnp.ndarray
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
@@ -174,7 +178,8 @@ def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
   return ReconState(ckpt=ck.ckpt_init(cfg.window, N_CKPT, cfg.n_controls), shadow=ekf_state, rate=jnp.zeros(3),
                     active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool),
                     blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32), gvel=jnp.full(3, jnp.nan, jnp.float32),
-                    gage=jnp.zeros(()), f_sum=jnp.zeros(3), acc_w=jnp.zeros(3), f_lp=jnp.zeros(3))
+                    gage=jnp.zeros(()), f_sum=jnp.zeros(3), acc_w=jnp.zeros(3), f_lp=jnp.zeros(3),
+                    gyro_t=jnp.zeros(()))
 
 
 def _gravity_ref(cfg: ReconConfig, state: ReconState, readings, f_model, dt):
@@ -293,9 +298,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
-  if cfg.sticky_gyro:   # a gyroscope blamed during this alarm stays replaced until the hand-back
-    g_i = SENSOR_NAMES.index("gyro")
-    mask = mask.at[g_i].set(mask[g_i] | (alarm & (state.blamed[g_i] > 0)))
+  g_i = SENSOR_NAMES.index("gyro")
+  if cfg.sticky_gyro:   # a gyroscope blamed for sticky_after_s in this alarm stays replaced until the hand-back
+    mask = mask.at[g_i].set(mask[g_i] | (alarm & (state.blamed[g_i] > 0) & (state.gyro_t >= cfg.sticky_after_s)))
   x_meas = input_vector(ekf_state, readings)
   rising = alarm & ~state.active
   falling = state.active & ~alarm   # the recovery switch hands back on this tick
@@ -395,7 +400,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   new = ReconState(**_gravity_ref(cfg, state, readings, f_b, dt), ckpt=ckpt, shadow=trusted,
                    rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
                    since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
-                   blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0))
+                   blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0),
+                   gyro_t=jnp.where(alarm & mask[g_i], state.gyro_t + dt, 0.0))
   return new, x_rec, trusted, trusted_rd
 
 
