@@ -319,6 +319,12 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   shadow = shadow.replace(accel_bias=jnp.where(un_accel, e_old["accel_bias"], shadow.accel_bias),
                           P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.ekf_cfg().init_accel_bias_sigma ** 2,
                                                 un_accel))
+  # Likewise a gyroscope un-blamed before it stuck (sticky_after_s: a transient blame): the gyro-bias state, zeroed
+  # every tick while the model rate stood in for it, returns to the last trusted estimate.
+  un_gyro = alarm & ~rising & ~mask[gi] & (state.blamed[gi] > 0)
+  shadow = shadow.replace(gyro_bias=jnp.where(un_gyro, e_old["gyro_bias"], shadow.gyro_bias),
+                          P=ekf_lib.reset_block(shadow.P, _GBIAS_IDX, cfg.ekf_cfg().init_gyro_bias_sigma ** 2,
+                                                un_gyro))
   # A newly blamed barometer (the EKF's height reference): the height / vertical speed are uncertain by what it dragged.
   bi = SENSOR_NAMES.index("baro")
   new_baro = mask[bi] & ~(state.blamed[bi] > 0)
