@@ -288,6 +288,7 @@ _MAG_ROW = CH["mag"]
 # (and flow the height). Products with H only visit these columns.
 _H_SUPPORT = ((0,), (1,), (2,), (3,), (4,), (5,), (2,), (6, 7, 8), (2, 3, 4, 5, 6, 7, 8), (2, 3, 4, 5, 6, 7, 8),
               (3, 4, 5, 6, 7, 8), (3, 4, 5, 6, 7, 8), (3, 4, 5, 6, 7, 8))
+_H_COLS = tuple(sorted(set(sum(_H_SUPPORT, ()))))
 
 
 def _observe(cfg: EKFConfig, pos, vel, r):
@@ -323,53 +324,100 @@ def _row_used(cfg: EKFConfig, i: int) -> bool:
   return True
 
 
-def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable):
-  """Gated sequential scalar fusion of all observation rows of one tick.
+def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
+  """Gating and sequential fusion of the rows, unrolled in low-rank form for accelerators (see `_fuse`).
 
-  The rows are linearised once at the predicted state; gates use the predicted covariance; a group is rejected as a
-  whole if any of its rows fails its gate; accepted rows are fused one scalar at a time into an accumulated
-  error-state correction that is injected into the nominal state at the end.
-  The covariance update of the sequential fusion, P_i = P_{i-1} - k_i (P_{i-1} h_i)', is done in low-rank form:
-  P_{i-1} h_i = P_0 h_i - sum_{j<i} k_j (P_{j-1} h_j)' h_i, so the loop over rows only touches [15]-vectors and P is
-  read once (P_0 H') and written once (P_0 - K' U), the same arithmetic as EKF2's per-row P -= K (H P) up to rounding.
-  Returns (state, innov[13], test_ratio[13], accepted[13] bool).
+  Products with H visit only its structural non-zeros (_H_SUPPORT), written as sums of scalars times rows of P (P is
+  symmetric, so P h = sum_c h_c P[c, :]): elementwise work XLA fuses, where dense batched tiny matmuls are not. Each
+  vector's entries are sliced out once and reused. Rows this vehicle never fuses are skipped statically.
+  Returns (P [15, 15], dx [15], ratio [13], accept [13] bool).
   """
-  pred, H = _linearise(cfg, s)
-  innov = z - pred
-  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
-  R = noise ** 2
-  # Products with H visit only its structural non-zeros (_H_SUPPORT), written as sums of scalars times rows of P (P is
-  # symmetric, so P h = sum_c h_c P[c, :]): elementwise work XLA fuses, where dense batched tiny matmuls are not.
-  def hdot(i, v):  # h_i . v
-    return sum(H[i, c] * v[c] for c in _H_SUPPORT[i])
+  hs = [{c: H[i, c] for c in _H_SUPPORT[i]} for i in range(N_ROWS)]
 
-  PHt = [sum(H[i, c] * s.P[c] for c in _H_SUPPORT[i]) for i in range(N_ROWS)]  # PHt[i] = P_0 h_i  [15]
-  S = jnp.stack([hdot(i, PHt[i]) for i in range(N_ROWS)]) + R
+  def entries(v):  # the entries of a [15]-vector (or rows of a matrix) that H's support can touch
+    return {c: v[c] for c in _H_COLS}
+
+  def hdot(i, ve):  # h_i . v, from v's entries
+    return sum(h * ve[c] for c, h in hs[i].items())
+
+  PHt = [hdot(i, entries(P0)) for i in range(N_ROWS)]  # PHt[i] = P_0 h_i  [15]
+  S = jnp.stack([hdot(i, entries(PHt[i])) for i in range(N_ROWS)]) + R
   ratio = innov ** 2 / (gate ** 2 * S)
   ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
   bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
   group_bad = (_GROUPS @ bad) > 0
   accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
 
-  # Rows are few and static: a Python loop unrolls them (13 rows of [15]-vector work, cheap to trace and compile).
-  # Rows this vehicle never fuses (flow on the rover, odometry/NHC on the drone, GPS height when off) are skipped.
-  us, cs = [], []  # us[j] = P_{j-1} h_j, cs[j] = 1 / (h_j' P_{j-1} h_j + R_j) (zero where row j is rejected)
-  dx = jnp.zeros(N_ERR, s.P.dtype)
+  us, ues, cs = [], [], []  # us[j] = P_{j-1} h_j (ues[j] its entries), cs[j] = 1 / (h_j' P_{j-1} h_j + R_j) or 0
+  dx = jnp.zeros(N_ERR, P0.dtype)
   for i in range(N_ROWS):
     if not _row_used(cfg, i):
       continue
     pht = PHt[i]
-    for u, c in zip(us, cs):
-      pht = pht - (c * hdot(i, u)) * u
-    c = jnp.where(accept[i], 1.0 / (hdot(i, pht) + R[i]), 0.0)
-    dx = dx + (c * (innov[i] - hdot(i, dx))) * pht
+    for u, ue, c in zip(us, ues, cs):
+      pht = pht - (c * hdot(i, ue)) * u
+    pe = entries(pht)
+    c = jnp.where(accept[i], 1.0 / (hdot(i, pe) + R[i]), 0.0)
+    dx = dx + (c * (innov[i] - hdot(i, entries(dx)))) * pht
     us.append(pht)
+    ues.append(pe)
     cs.append(c)
   # P_13 = P_0 - sum_i c_i u_i u_i' as an explicit sum of outer products (one elementwise pass; a reduce over a stacked
   # [13, 15, 15] product was 30 % of the EKF on an H100). u_i u_i' is exactly symmetric, so P stays symmetric.
-  P = s.P
+  P = P0
   for u, c in zip(us, cs):
     P = P - c * (u[:, None] * u[None, :])
+  return P, dx, ratio, accept
+
+
+def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
+  """The same gating and sequential fusion as `_rows_unrolled`, one dense row per iteration of a rolled loop: the
+  CPU form (small trace, quick to compile; the unrolled form doubles the env's compile time there).
+  P_i = P_{i-1} - c_i u_i u_i' with u_i = P_{i-1} h_i, c_i = 1 / (h_i' u_i + R_i) (exactly symmetric).
+  Returns (P [15, 15], dx [15], ratio [13], accept [13] bool).
+  """
+  S = jnp.einsum("mi,ij,mj->m", H, P0, H) + R
+  ratio = innov ** 2 / (gate ** 2 * S)
+  ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
+  bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
+  group_bad = (_GROUPS @ bad) > 0
+  accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
+  used = jnp.asarray([_row_used(cfg, i) for i in range(N_ROWS)]) & accept
+
+  def body(i, carry):
+    P, dx = carry
+    hi = H[i]
+    u = jnp.sum(P * hi[None, :], axis=-1)
+    c = jnp.where(used[i], 1.0 / (jnp.sum(hi * u) + R[i]), 0.0)
+    return P - c * (u[:, None] * u[None, :]), dx + (c * (innov[i] - jnp.sum(hi * dx))) * u
+
+  P, dx = jax.lax.fori_loop(0, N_ROWS, body, (P0, jnp.zeros(N_ERR, P0.dtype)))
+  return P, dx, ratio, accept
+
+
+def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | None = None):
+  """Gated sequential scalar fusion of all observation rows of one tick.
+
+  The rows are linearised once at the predicted state; gates use the predicted covariance; a group is rejected as a
+  whole if any of its rows fails its gate; accepted rows are fused one scalar at a time into an accumulated
+  error-state correction that is injected into the nominal state at the end.
+  The covariance update is EKF2's per-row P -= K (H P), in one of two forms equal up to rounding (tests/test_ekf.py
+  checks both against the dense textbook update in float64):
+  * unrolled (accelerators, default off the CPU), low-rank: P_{i-1} h_i = P_0 h_i - sum_{j<i} c_j u_j (u_j' h_i), so
+    the row loop only touches [15]-vectors and P is read once and written once (P_0 - sum_i c_i u_i u_i');
+  * rolled (CPU): one dense row update per iteration of a fori_loop, a small trace that compiles quickly.
+  Returns (state, innov[13], test_ratio[13], accepted[13] bool).
+  """
+  pred, H = _linearise(cfg, s)
+  innov = z - pred
+  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  R = noise ** 2
+  if unrolled is None:
+    unrolled = jax.default_backend() != "cpu"
+  if unrolled:
+    P, dx, ratio, accept = _rows_unrolled(cfg, s.P, H, innov, R, gate, enable)
+  else:
+    P, dx, ratio, accept = _rows_rolled(cfg, s.P, H, innov, R, gate, enable)
   return _inject(cfg, s.replace(P=P), dx), innov, ratio, accept
 
 

@@ -385,12 +385,13 @@ def _dense_sequential_fuse(ecfg, s, z, noise, gate, enable):
 
 
 @pytest.mark.parametrize("vehicle", ["drone", "rover"])
-def test_fusion_equals_textbook_sequential_update(vehicle):
-  """`_fuse` (low-rank, sparse-H, skipped static rows) == the dense per-row P -= k (P h)' update, for random states
-  where some rows are gated out; and the P it returns is exactly symmetric."""
+@pytest.mark.parametrize("unrolled", [True, False], ids=["unrolled", "rolled"])
+def test_fusion_equals_textbook_sequential_update(vehicle, unrolled):
+  """`_fuse` in both forms (accelerators: unrolled low-rank, sparse H, static rows skipped; CPU: rolled dense rows)
+  == the dense per-row P -= k (P h)' update, for random states where some rows are gated out; P exactly symmetric."""
   from specguard_jax import ekf as ekf_lib
   ecfg = getattr(EKFConfig, vehicle)()
-  fuse = jax.jit(lambda s, z, n, g, e: ekf_lib._fuse(ecfg, s, z, n, g, e))
+  fuse = jax.jit(lambda s, z, n, g, e: ekf_lib._fuse(ecfg, s, z, n, g, e, unrolled=unrolled))
   n_rejected = 0
   for seed in range(6):
     s, r = _random_state(ecfg, jax.random.PRNGKey(seed))
