@@ -238,6 +238,18 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   return shadow, jnp.where(do & switch, 0.0, rate)
 
 
+def _model_rate(cfg: ReconConfig, rate):
+  """The model body rate (rad/s [3]) the shadow replays / flies on. Ground vehicle (the shadow EKF has the
+  non-holonomic constraint: rover): no roll / pitch rate, yaw rate clamped to model_rate_limit. The rover's fitted
+  angular model has no roll / pitch dynamics to speak of (trained on ~0 rates; |w| w terms of +-50..350), so a
+  checkpoint that a spoofed gyro x/y bias had given a few rad/s of roll rate blew its replay up to NaN within 5 ticks
+  (the shadow's state then read zeros for the whole alarm). Drone: unchanged."""
+  if not cfg.ekf_cfg().use_nhc:
+    return rate
+  return jnp.stack([jnp.zeros_like(rate[0]), jnp.zeros_like(rate[1]),
+                    jnp.clip(rate[2], -cfg.model_rate_limit, cfg.model_rate_limit)])
+
+
 def dependent_components(compromised_mask) -> jax.Array:
   """[15] bool: components of x'_t derived from any sensor in compromised_mask ([6] 0/1, SENSOR_NAMES order)."""
   m = jnp.asarray(compromised_mask) > 0
@@ -251,11 +263,12 @@ def _start(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state
   lag = min(cfg.lag, w - 1)
   start = jnp.maximum(w - 1 - lag, w - state.ckpt.count)  # ordered index of the checkpoint (newest = w - 1)
   e = _unpack(states[jnp.clip(start, 0, w - 1)])
-  s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=e["rate"])
+  s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=_model_rate(cfg, e["rate"]))
 
   def body(i, s):
     j = start + 1 + i  # controls stored with entry j moved the vehicle from entry j-1 to entry j
     s_new = dyn.step(params, s, controls[jnp.clip(j, 0, w - 1)], dt)
+    s_new = s_new.replace(rate=_model_rate(cfg, s_new.rate))
     return jax.tree.map(lambda a, b: jnp.where(j <= w - 1, a, b), s_new, s)
 
   # Unrolled on accelerators: a device while-loop costs a launch and a host sync per iteration (~30 us each on an
@@ -345,10 +358,11 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   shadow, rate = _relevel(cfg, state, shadow, rate, readings, mask, new_gyro, ~rising)
 
   # model-predicted rate and specific force for this tick
+  rate = _model_rate(cfg, rate)
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
   _, alpha = dyn.derivatives(params, s, controls)
   f_b = dyn.specific_force(params, s, controls)
-  rate_new = rate + alpha * dt
+  rate_new = _model_rate(cfg, rate + alpha * dt)
   gps, mag, baro, flow = (mask[SENSOR_NAMES.index(n)] for n in ("gps", "mag", "baro", "flow"))
   zero = jnp.zeros(())
   rd = readings.replace(
