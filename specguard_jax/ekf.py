@@ -324,6 +324,20 @@ def _row_used(cfg: EKFConfig, i: int) -> bool:
   return True
 
 
+def _gate(innov, S, gate, enable):
+  """EKF2's innovation-consistency gates of one tick's rows against the predicted variances S [13].
+
+  A group is rejected as a whole if any of its rows fails its gate. Returns (test ratio [13], accept [13] bool, the
+  innovations to fuse [13]: zero where rejected, so a non-finite rejected one cannot reach the state).
+  """
+  ratio = innov ** 2 / (gate ** 2 * S)
+  ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
+  bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
+  group_bad = (_GROUPS @ bad) > 0
+  accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
+  return ratio, accept, jnp.where(accept, innov, 0.0)
+
+
 def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   """Gating and sequential fusion of the rows, unrolled in low-rank form for accelerators (see `_fuse`).
 
@@ -342,11 +356,7 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
 
   PHt = [hdot(i, entries(P0)) for i in range(N_ROWS)]  # PHt[i] = P_0 h_i  [15]
   S = jnp.stack([hdot(i, entries(PHt[i])) for i in range(N_ROWS)]) + R
-  ratio = innov ** 2 / (gate ** 2 * S)
-  ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
-  bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
-  group_bad = (_GROUPS @ bad) > 0
-  accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
+  ratio, accept, innov = _gate(innov, S, gate, enable)
 
   us, ues, cs = [], [], []  # us[j] = P_{j-1} h_j (ues[j] its entries), cs[j] = 1 / (h_j' P_{j-1} h_j + R_j) or 0
   dx = jnp.zeros(N_ERR, P0.dtype)
@@ -377,11 +387,7 @@ def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   Returns (P [15, 15], dx [15], ratio [13], accept [13] bool).
   """
   S = jnp.einsum("mi,ij,mj->m", H, P0, H) + R
-  ratio = innov ** 2 / (gate ** 2 * S)
-  ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
-  bad = (enable & ~(ratio <= 1.0)).astype(jnp.float32)
-  group_bad = (_GROUPS @ bad) > 0
-  accept = enable & ~((_GROUPS.T @ group_bad.astype(jnp.float32)) > 0)
+  ratio, accept, innov = _gate(innov, S, gate, enable)
   used = jnp.asarray([_row_used(cfg, i) for i in range(N_ROWS)]) & accept
 
   def body(i, carry):

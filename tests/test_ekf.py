@@ -431,3 +431,21 @@ def test_step_keeps_covariance_exactly_symmetric(drone):
   P = np.asarray(run_filter(DRONE[1], r).P)
   assert np.array_equal(P, np.swapaxes(P, 1, 2))
   assert np.all(np.diagonal(P, axis1=1, axis2=2) > 0)
+
+
+@pytest.mark.parametrize("unrolled", [True, False], ids=["unrolled", "rolled"])
+def test_rejected_nonfinite_reading_does_not_reach_the_state(unrolled):
+  """A NaN optical-flow sample fails its gate: the state is exactly what fusing every other row gives, and finite."""
+  from specguard_jax import ekf as ekf_lib
+  ecfg = EKFConfig.drone()
+  s, r = _random_state(ecfg, jax.random.PRNGKey(3))
+  z, noise, gate = ekf_lib._measurement_rows(ecfg, r)
+  enable = jnp.asarray([ekf_lib._row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)])
+  fuse = jax.jit(lambda z, e: ekf_lib._fuse(ecfg, s, z, noise, gate, e, unrolled=unrolled))
+  flow = np.array([ekf_lib._ROWS[i].startswith("flow") for i in range(ekf_lib.N_ROWS)])
+  bad, _, _, acc = fuse(z.at[flow].set(jnp.nan), enable)
+  ref, _, _, _ = fuse(z, enable & ~flow)
+  assert not np.any(np.asarray(acc)[flow]) and np.any(np.asarray(acc))
+  for name in ("pos", "vel", "quat", "P"):
+    assert np.all(np.isfinite(np.asarray(getattr(bad, name)))), name
+    np.testing.assert_allclose(np.asarray(getattr(bad, name)), np.asarray(getattr(ref, name)), rtol=1e-6, atol=1e-7)
