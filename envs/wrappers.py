@@ -7,6 +7,11 @@ pre-generated initial states and refreshes `refresh` of them per step (round rob
 pool entries, so each new episode gets a new mission/world/domain sample as long as fewer than `refresh` episodes
 end per step on average (otherwise some pool entries are reused before being regenerated: their episodes start from
 the same mission but diverge through their own rng). Defaults: pool = max(8, B/8), refresh = max(1, B/128).
+
+`refresh_in_step=False` leaves the pool alone in `step`; the caller then regenerates it in bulk with `refresh_pool`
+(the trainer does, once per rollout of `steps` env steps: the same number of fresh entries, `refresh` per step, capped
+at the pool size). A step then costs no reset at all: on an H100 the per-step refresh (a vmapped reset of B/128 envs
+plus one pool write per state leaf) was ~730 of AutoReset's ~880 extra kernels per env step (`bench/env_profile.py`).
 """
 
 from __future__ import annotations
@@ -30,10 +35,11 @@ class AutoReset(Wrapper):
   `info['final_spec_robustness']` the finished episode's per-spec robustness.
   """
 
-  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None):
+  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None, refresh_in_step: bool = True):
     super().__init__(env)
     self._pool_size = pool_size
     self._refresh = refresh
+    self._refresh_in_step = refresh_in_step
 
   def _sizes(self, batch):
     pool = self._pool_size or max(8, batch // 8)
@@ -64,14 +70,30 @@ class AutoReset(Wrapper):
     idx = (cursor + rank) % pool_n
     fresh = jax.tree.map(lambda x: x[idx], pool)
     merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
-    # Regenerate `refresh` pool entries (round robin) with new missions/worlds.
-    key, sub = jax.random.split(info["reset_key"])
-    new = self.env.reset(jax.random.split(sub, refresh))
-    slots = (ref_ptr + jnp.arange(refresh)) % pool_n
-    pool = jax.tree.map(lambda p, n: p.at[slots].set(n), pool, new)
     new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=out.obs,
                     final_spec_robustness=out.info["spec_robustness"],
-                    pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32),
-                    pool_refresh=((ref_ptr + refresh) % pool_n).astype(jnp.int32), reset_key=key,
-                    last_episode=out.info["episode"])
-    return merged.replace(info=new_info)
+                    pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32), pool_refresh=ref_ptr,
+                    reset_key=info["reset_key"], last_episode=out.info["episode"])
+    merged = merged.replace(info=new_info)
+    if self._refresh_in_step:
+      merged = self._regenerate(merged, refresh)
+    return merged
+
+  def refresh_pool(self, state: State, steps: int) -> State:
+    """Regenerates the pool entries `steps` env steps of in-step refreshing would have (min(pool, refresh x steps),
+    round robin, new missions/worlds); for a wrapper built with refresh_in_step=False, called between rollouts."""
+    pool_n = state.info["reset_pool"].done.shape[0]
+    _, refresh = self._sizes(state.done.shape[0])
+    return self._regenerate(state, min(pool_n, refresh * steps))
+
+  def _regenerate(self, state: State, n: int) -> State:
+    """Replaces n (static) consecutive pool entries from the refresh pointer (round robin) with fresh resets."""
+    info = state.info
+    pool, ref_ptr = info["reset_pool"], info["pool_refresh"]
+    pool_n = pool.done.shape[0]
+    key, sub = jax.random.split(info["reset_key"])
+    new = self.env.reset(jax.random.split(sub, n))
+    slots = (ref_ptr + jnp.arange(n)) % pool_n
+    pool = jax.tree.map(lambda p, x: p.at[slots].set(x), pool, new)
+    return state.replace(info=dict(info, reset_pool=pool, reset_key=key,
+                                   pool_refresh=((ref_ptr + n) % pool_n).astype(jnp.int32)))

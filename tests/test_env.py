@@ -128,6 +128,29 @@ def test_autoreset_starts_a_new_mission(drone_env):
   np.testing.assert_allclose(np.asarray(s2.info["mission"].waypoints[1]), old_wp[1])
 
 
+def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
+  """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
+  refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""
+  keys = jax.random.split(jax.random.PRNGKey(6), 2)
+  inline = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1)
+  bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1, refresh_in_step=False)
+  s = jax.jit(inline.reset)(keys)
+  a = jnp.zeros((2, 3))
+  s_inline = jax.jit(inline.step)(s, a)
+  s_bulk = jax.jit(bulk.step)(s, a)
+  pool0 = np.asarray(s.info["reset_pool"].info["mission"].waypoints)
+  np.testing.assert_array_equal(np.asarray(s_bulk.info["reset_pool"].info["mission"].waypoints), pool0)
+  assert int(s_bulk.info["pool_refresh"]) == 0
+  s_bulk1 = jax.jit(lambda s: bulk.refresh_pool(s, 1))(s_bulk)
+  for x, y in zip(jax.tree.leaves(s_inline), jax.tree.leaves(s_bulk1)):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  assert int(s_inline.info["pool_refresh"]) == 1
+  s_bulk3 = jax.jit(lambda s: bulk.refresh_pool(s, 3))(s_bulk)
+  wp3 = np.asarray(s_bulk3.info["reset_pool"].info["mission"].waypoints)
+  changed = [not np.allclose(wp3[i], pool0[i]) for i in range(4)]
+  assert changed == [True, True, True, False] and int(s_bulk3.info["pool_refresh"]) == 3
+
+
 def test_velocity_setpoint_override():
   """In 'override' mode the action (world velocity setpoint) replaces the navigator's once airborne."""
   env = envs.make("drone", world="open_beach", mission=SHORT_DRONE, control_mode="override",

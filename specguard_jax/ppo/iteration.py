@@ -144,7 +144,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     shard = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
     rep = functools.partial(distributed.constrain, sharding=distributed.replicated(mesh))
   env = make_env(cfg, phase)
-  batched = AutoReset(VmapWrapper(env))
+  # The reset pool is refreshed once per rollout (after the scan), not inside every env step (envs/wrappers.py).
+  batched = AutoReset(VmapWrapper(env), refresh_in_step=False)
   sg, aa = make_agents(cfg)
   adversarial = phase == 2
   base = env.env if adversarial else env
@@ -156,6 +157,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
   step = jax.vmap(batched.step)
+  refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
   def init(key, sg_state, aa_state) -> Carry:
     k_env, k_run = jax.random.split(key)
@@ -237,6 +239,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     init_c = (carry.sg, carry.aa, carry.env_state, carry.ep_return, carry.ep_return_aa)
     (_, _, state, ep_ret, ep_ret_aa), (tr, stats) = jax.lax.scan(
         act_step, init_c, jax.random.split(k_roll, cfg.unroll_length))
+    state = refresh_pool(state)
     stats = jax.tree.map(jnp.sum, stats)
     sg_batch = advantages(tr["sg"], cfg.sg)
     sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])

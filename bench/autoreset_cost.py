@@ -1,0 +1,60 @@
+"""What an auto-reset costs per env step: `Vmap(env).step` alone vs `AutoReset` with the reset pool refreshed inside
+every step (the default; Brax's loop uses it) vs refreshed once per rollout (the trainer's form, refresh_pool amortised
+over the unroll).
+
+  python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32]
+
+Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env, zero action.
+"""
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+
+def timed(fn, carry, reps):
+  @jax.jit
+  def run(c):
+    return jax.lax.scan(lambda c, _: (fn(c), None), c, None, length=reps)[0]
+  jax.block_until_ready(run(carry))
+  best = float("inf")
+  for _ in range(3):
+    t = time.perf_counter()
+    jax.block_until_ready(run(carry))
+    best = min(best, (time.perf_counter() - t) / reps)
+  return best * 1e3
+
+
+def main():
+  p = argparse.ArgumentParser()
+  p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
+  p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
+  p.add_argument("--unroll", type=int, default=32)
+  a = p.parse_args()
+  import envs
+  from brax.envs.wrappers.training import VmapWrapper
+  from envs.wrappers import AutoReset
+  env = envs.make(a.vehicle)
+  for n in a.envs:
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    st = jax.jit(jax.vmap(env.reset))(keys)
+    act = jnp.zeros((n, env.action_size))
+    rows = {"Vmap(env).step (no reset)": timed(lambda s: jax.vmap(env.step)(s, act), st, a.unroll)}
+    per_step = AutoReset(VmapWrapper(env))
+    bs = jax.jit(per_step.reset)(keys)
+    rows["AutoReset, pool refreshed per step"] = timed(lambda s: per_step.step(s, act), bs, a.unroll)
+    per_roll = AutoReset(VmapWrapper(env), refresh_in_step=False)
+    step = timed(lambda s: per_roll.step(s, act), bs, a.unroll)
+    refresh = timed(lambda s: per_roll.refresh_pool(s, a.unroll), bs, 4) / a.unroll
+    rows["AutoReset, pool refreshed per rollout"] = step + refresh
+    rows["  of which the step"] = step
+    rows[f"  of which refresh_pool({a.unroll}) / {a.unroll}"] = refresh
+    print(f"{jax.devices()[0].device_kind}, {a.vehicle} phase 1, {n} envs (ms per env step)")
+    for k, v in rows.items():
+      print(f"  {k:40s} {v:8.3f}")
+
+
+if __name__ == "__main__":
+  main()
