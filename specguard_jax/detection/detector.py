@@ -53,6 +53,10 @@ accelerometer itself off the model's specific force (rotor thrust + drag) by `ac
 else it is a gyro bias that tilted the EKF attitude (the accelerometer agrees with the thrust, the attitude does not);
 and an IMU-looking alarm whose GPS filter moved while the flow filter stayed with the IMU (`gps_moved`) is the GPS's
 (a quick GPS ramp trips the GPS-velocity CUSUM before the 3 s velocity cross-check has caught up).
+Rover gyro vs accelerometer from physics (`diagnose`, issue #5): a level ground vehicle's accelerometer reads gravity on
+body z and the centripetal force (odometry speed x bicycle-model yaw rate) on body y; a gyro x/y bias tilts the EKF
+(the aiding pattern of an accelerometer bias) but leaves the accelerometer on that model, an accelerometer bias does
+not (`acc_z_tol`, `acc_y_tol`).
 
 Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
 alarm of the cross-checks alone also waits for the velocity and height cross-checks to agree again); on hand-back
@@ -617,12 +621,13 @@ def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, se
       # tilts the EKF attitude, gravity leaks into its horizontal prediction and every velocity innovation moves
       # together: the aiding pattern of an accelerometer bias, but the accelerometer still agrees with the model
       # (|acc_e| z <= 0.03 m/s^2 in every gyro attack looked at, attack-free <= 0.04). An accelerometer blame that
-      # the accel x model channel did not make is the gyro's unless the accelerometer is off the model on y or z;
-      # and a gyro blame with the accelerometer off gravity on z is the accelerometer's (a z bias moves the EKF's
-      # vertical velocity; the manoeuvres of the shadow then trip the bicycle-model gyro z channel).
+      # the accel x model channel did not make is the gyro's unless the accelerometer is off the model on y or z.
+      # Conversely an accelerometer off gravity on z is attacked whatever the aiding pattern says (no other sensor's
+      # attack moves it): a z bias moves the EKF's vertical velocity (blamed on the baro) or its tilt (the GPS), and
+      # the shadow's manoeuvres tripped the bicycle-model gyro z channel (blamed on the gyro).
       acc_off = (xpeak[5] >= cfg.acc_z_tol) | (xpeak[4] >= cfg.acc_y_tol)
       out = jnp.where((out == _S["accel"]) & (ev[_S["accel"]] < cfg.imu_blame) & ~acc_off, _S["gyro"], out)
-      out = jnp.where((out == _S["gyro"]) & (xpeak[5] >= cfg.acc_z_tol) & (mag < 1.0), _S["accel"], out)
+      out = jnp.where(xpeak[5] >= cfg.acc_z_tol, _S["accel"], out)
   return out.astype(jnp.int32)
 
 

@@ -19,7 +19,8 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
     stays replaced until the hand-back;
   * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag); the
     shadow's accel-bias state then restarts and tracks the model's error (mass / thrust-gain uncertainty, larger
-    clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back.
+    clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back. A ground vehicle
+    (rover) uses a physical level-vehicle force instead of the fitted one (`_model_force`: it ran away);
 Selective output: only the components of x'_t that derive from a compromised sensor (SENSOR_DEPS) are replaced by
 the shadow estimate; the rest stays as measured (EKF). Everything is pure JAX, jittable and vmappable.
 """
