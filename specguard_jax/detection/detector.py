@@ -621,12 +621,15 @@ def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, se
       # tilts the EKF attitude, gravity leaks into its horizontal prediction and every velocity innovation moves
       # together: the aiding pattern of an accelerometer bias, but the accelerometer still agrees with the model
       # (|acc_e| z <= 0.03 m/s^2 in every gyro attack looked at, attack-free <= 0.04). An accelerometer blame that
-      # the accel x model channel did not make is the gyro's unless the accelerometer is off the model on y or z.
+      # the accel x model channel did not make is the gyro's unless the accelerometer is off the model on y or z
+      # (or the odometry's IMU filter stayed with the IMU while the GPS's moved: a quick GPS ramp's first ticks, left
+      # to the GPS rules).
       # Conversely an accelerometer off gravity on z is attacked whatever the aiding pattern says (no other sensor's
       # attack moves it): a z bias moves the EKF's vertical velocity (blamed on the baro) or its tilt (the GPS), and
       # the shadow's manoeuvres tripped the bicycle-model gyro z channel (blamed on the gyro).
       acc_off = (xpeak[5] >= cfg.acc_z_tol) | (xpeak[4] >= cfg.acc_y_tol)
-      out = jnp.where((out == _S["accel"]) & (ev[_S["accel"]] < cfg.imu_blame) & ~acc_off, _S["gyro"], out)
+      tilt_r = ~acc_off & (e_gps < cfg.gps_ratio * e_aid)
+      out = jnp.where((out == _S["accel"]) & (ev[_S["accel"]] < cfg.imu_blame) & tilt_r, _S["gyro"], out)
       out = jnp.where(xpeak[5] >= cfg.acc_z_tol, _S["accel"], out)
   return out.astype(jnp.int32)
 
