@@ -10,14 +10,18 @@ per-mission max |acc_e| per axis after the detector's warm-up (quantiles).
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))   # this checkout, not an installed one
 
-import envs
-from envs import missions as missions_lib
-from specguard_jax import attacks
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import envs  # noqa: E402
+from envs import missions as missions_lib  # noqa: E402
+from specguard_jax import attacks  # noqa: E402
 
 WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
 
