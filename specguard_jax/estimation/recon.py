@@ -19,7 +19,8 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
     stays replaced until the hand-back;
   * a compromised accelerometer is replaced by the model's specific force (thrust / mass along body z, drag); the
     shadow's accel-bias state then restarts and tracks the model's error (mass / thrust-gain uncertainty, larger
-    clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back.
+    clamp `model_accel_limit`), and returns to the last trusted sensor-bias estimate on hand-back. A ground vehicle
+    (rover) uses a physical level-vehicle force instead of the fitted one (`_model_force`: it ran away);
 Selective output: only the components of x'_t that derive from a compromised sensor (SENSOR_DEPS) are replaced by
 the shadow estimate; the rest stays as measured (EKF). Everything is pure JAX, jittable and vmappable.
 """
@@ -120,6 +121,10 @@ class ReconConfig:
   baro_z_sigma: float = 3.0       # m: height uncertainty of the shadow when the barometer is newly blamed (a ramp
   baro_vz_sigma: float = 0.5      # m/s: and vertical speed)   dragged the EKF's height before the alarm: the GPS
                                   # height pulls it back within ~1 s instead of ~10 s)
+  # Ground vehicle (ekf use_nhc): longitudinal force model of a replaced accelerometer (`_model_force`): drive force
+  # at full throttle (N), rolling resistance (N s/m), drag (N s^2/m^2), mass (kg); the rover's nominal values
+  # (autopilot.ardurover.RoverParams, assets/rover.xml).
+  ground_drive: tuple = (70.0, 3.0, 0.2, 10.0)
 
   def ekf_cfg(self):
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
@@ -250,6 +255,22 @@ def _model_rate(cfg: ReconConfig, rate):
                     jnp.clip(rate[2], -cfg.model_rate_limit, cfg.model_rate_limit)])
 
 
+def _model_force(cfg: ReconConfig, f_b, s: dyn.DynState, controls):
+  """The model body specific force (m/s^2 [3]) that stands in for a replaced accelerometer. Ground vehicle (use_nhc:
+  rover, controls = (throttle, steer)): the drive force minus rolling resistance and drag over the mass
+  (`ground_drive`) longitudinally, the centripetal force (body forward speed x the model yaw rate) laterally and
+  gravity vertically. The rover's fitted linear model has positive velocity feedback outside its training data
+  (lateral / vertical speed, braking at speed: throttle x speed), so a shadow flying on it ran away within 1-3 s
+  (hundreds of m/s, kilometres of reconstruction error; its GPS innovations then fell outside the gates). The
+  shadow's accel-bias state absorbs the per-episode drive-gain / mass error as before. Drone: unchanged."""
+  if not cfg.ekf_cfg().use_nhc:
+    return f_b
+  drive, rolling, drag, mass = cfg.ground_drive
+  u = (math3d.quat_to_rot(s.quat).T @ s.vel)[0]
+  fx = (controls[0] * drive - rolling * u - drag * u * jnp.abs(u)) / mass
+  return jnp.stack([fx, u * s.rate[2], jnp.full_like(fx, -dyn.G[2])])
+
+
 def dependent_components(compromised_mask) -> jax.Array:
   """[15] bool: components of x'_t derived from any sensor in compromised_mask ([6] 0/1, SENSOR_NAMES order)."""
   m = jnp.asarray(compromised_mask) > 0
@@ -361,7 +382,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   rate = _model_rate(cfg, rate)
   s = dyn.DynState(pos=shadow.pos, vel=shadow.vel, quat=shadow.quat, rate=rate)
   _, alpha = dyn.derivatives(params, s, controls)
-  f_b = dyn.specific_force(params, s, controls)
+  f_b = _model_force(cfg, dyn.specific_force(params, s, controls), s, controls)
   rate_new = _model_rate(cfg, rate + alpha * dt)
   gps, mag, baro, flow = (mask[SENSOR_NAMES.index(n)] for n in ("gps", "mag", "baro", "flow"))
   zero = jnp.zeros(())
