@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs
-from envs import missions as missions_lib
+from envs import rollout
 from specguard_jax import attacks
 from specguard_jax import detection
 
@@ -81,14 +81,7 @@ def main(argv=None):
   rows = [(s, p, j) for s, p in SETTINGS for j in range(n)] + [(None, None, j) for j in range(a.free)]
 
   def one(key, si):
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    cand = [attacks.sample_attack(attacks.AttackConfig(sensors=(s,), profiles=(p,)), k_a, m.nominal_duration)
-            for s, p in SETTINGS] + [attacks.no_attack()]
-    atk = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float32) for v in x])[si], *cand)
-    atk = atk.replace(profile=atk.profile.astype(jnp.int32))
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+    return rollout.draw_paired_episode(env, key, SETTINGS + (None,), si)
 
   @jax.jit
   def run(keys, sid):

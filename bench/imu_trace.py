@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs
-from envs import missions as missions_lib
+from envs import rollout
 from specguard_jax import attacks
 from specguard_jax import math3d
 
@@ -54,17 +54,10 @@ def main(argv=None):
   env = envs.make("drone", worlds=WORLDS, control_mode="reactive", detector="residual", detector_delay=0.5,
                   reconstruction=True, override_residual=True, override_frame="body")
   keys = jax.random.split(jax.random.PRNGKey(a.seed), max(a.n, max(idx) + 1))[np.array(idx)]
-  acfg = attacks.AttackConfig(sensors=(a.sensor,), profiles=(a.profile,))
   T = int(round(a.seconds / env.dt))
 
   def one(key):
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    atk = attacks.sample_attack(acfg, k_a, m.nominal_duration)
-    atk = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), atk)
-    atk = atk.replace(profile=atk.profile.astype(jnp.int32))
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+    return rollout.draw_paired_episode(env, key, ((a.sensor, a.profile),), 0)
 
   @jax.jit
   def run(keys):

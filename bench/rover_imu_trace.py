@@ -20,7 +20,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import envs  # noqa: E402
-from envs import missions as missions_lib  # noqa: E402
+from envs import rollout  # noqa: E402
 from specguard_jax import attacks  # noqa: E402
 
 WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
@@ -47,14 +47,7 @@ def main(argv=None):
   rows = [(s, p, j) for s, p in settings for j in range(n)] + [(None, None, j) for j in range(a.free)]
 
   def one(key, si):
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    cand = [attacks.sample_attack(attacks.AttackConfig(sensors=(s,), profiles=(p,)), k_a, m.nominal_duration)
-            for s, p in settings] + [attacks.no_attack()]
-    atk = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float32) for v in x])[si], *cand)
-    atk = atk.replace(profile=atk.profile.astype(jnp.int32))
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+    return rollout.draw_paired_episode(env, key, tuple(settings) + (None,), si)
 
   @jax.jit
   def run(keys, sid):

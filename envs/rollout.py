@@ -11,9 +11,28 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from envs import missions as missions_lib
 from envs.base import tree_where
+from specguard_jax import attacks as attacks_lib
 
 EPISODE_FLAGS = ("complete", "collision", "crash", "fence_breach", "stall", "nan")
+
+
+def draw_paired_episode(env, key, settings, index):
+  """Reset one env for a paired closed-loop experiment (bench/gps_xcheck.py, bench/*_trace.py, the recovery tests).
+
+  Mission, attack and world are drawn from `key` the same way whatever the setting, so episodes with one key share
+  their plan, world and noise and differ only in the attack. settings: static tuple of (sensor, profile) pairs or None
+  (no attack); index: [] int, which of them. The world is drawn uniformly from the env's `worlds`. Returns a State.
+  """
+  k_m, k_a, k_w, k_r = jax.random.split(key, 4)
+  m = missions_lib.generate_mission(env.mission_cfg, k_m)
+  cand = [attacks_lib.no_attack() if s is None else attacks_lib.sample_attack(
+      attacks_lib.AttackConfig(sensors=(s[0],), profiles=(s[1],)), k_a, m.nominal_duration) for s in settings]
+  atk = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float32) for v in x])[index], *cand)
+  atk = atk.replace(profile=atk.profile.astype(jnp.int32))
+  wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(env.world_ids))]
+  return env.reset_in_world(k_r, wid, m, atk)
 
 
 def _policy_zero(obs, key):

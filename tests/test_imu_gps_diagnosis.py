@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs import missions as missions_lib
+from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 64
@@ -33,14 +33,9 @@ def flights():
   keys = jax.random.split(jax.random.PRNGKey(SEED), N_KEYS)[np.array([j for _, j in ROWS])]
   sensor = jnp.asarray([attacks.SENSOR_NAMES.index(s) for s, _ in ROWS])
 
-  def one(key, si):   # bench/gps_xcheck.py's mission / attack / world draw for a stealthy attack on sensor si
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    cand = [attacks.sample_attack(attacks.AttackConfig(sensors=(s,), profiles=("stealthy",)), k_a,
-                                  m.nominal_duration) for s in ("gyro", "gps")]
-    atk = jax.tree.map(lambda a, b: jnp.where(si == GYRO, a, b), *cand)
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+  def one(key, si):   # bench/gps_xcheck.py's draw for a stealthy attack on sensor si
+    return rollout.draw_paired_episode(env, key, (("gyro", "stealthy"), ("gps", "stealthy")),
+                                       jnp.where(si == GYRO, 0, 1))
 
   @jax.jit
   def run(keys, sensor):

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs import missions as missions_lib
+from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 32
@@ -39,14 +39,7 @@ def drives():
   sid = jnp.asarray([_SETTINGS.index((s, p)) for s, p, _ in ROWS])
 
   def one(key, si):   # bench/gps_xcheck.py's mission / attack / world draw
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    cand = [attacks.sample_attack(attacks.AttackConfig(sensors=(s,), profiles=(p,)), k_a, m.nominal_duration)
-            for s, p in _SETTINGS]
-    atk = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float32) for v in x])[si], *cand)
-    atk = atk.replace(profile=atk.profile.astype(jnp.int32))
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+    return rollout.draw_paired_episode(env, key, _SETTINGS, si)
 
   @jax.jit
   def run(keys, sid):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import envs
-from envs import missions as missions_lib
+from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 32
@@ -33,15 +33,8 @@ def drives():
   overt = jnp.asarray([p == "overt" for p, _ in ROWS])
 
   def one(key, ov):   # bench/gps_xcheck.py's mission / attack / world draw for a gyro attack
-    k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-    m = missions_lib.generate_mission(env.mission_cfg, k_m)
-    cand = [attacks.sample_attack(attacks.AttackConfig(sensors=("gyro",), profiles=(p,)), k_a, m.nominal_duration)
-            for p in ("overt", "stealthy")]
-    cand = [jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), c) for c in cand]
-    atk = jax.tree.map(lambda a, b: jnp.where(ov, a, b), *cand)
-    atk = atk.replace(profile=atk.profile.astype(jnp.int32))
-    wid = jnp.asarray(env.world_ids)[jax.random.randint(k_w, (), 0, len(WORLDS))]
-    return env.reset_in_world(k_r, wid, m, atk)
+    return rollout.draw_paired_episode(env, key, (("gyro", "overt"), ("gyro", "stealthy")),
+                                       jnp.where(ov, 0, 1))
 
   @jax.jit
   def run(keys, overt):

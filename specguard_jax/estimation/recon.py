@@ -130,6 +130,11 @@ class ReconConfig:
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
                                accel_bias_limit=self.model_accel_limit)
 
+  @property
+  def ground_vehicle(self) -> bool:
+    """A ground vehicle (its shadow EKF fuses the non-holonomic constraint: the rover); static."""
+    return self.ekf_cfg().use_nhc
+
 
 @struct.dataclass
 class ReconState:
@@ -249,7 +254,7 @@ def _model_rate(cfg: ReconConfig, rate):
   angular model has no roll / pitch dynamics to speak of (trained on ~0 rates; |w| w terms of +-50..350), so a
   checkpoint that a spoofed gyro x/y bias had given a few rad/s of roll rate blew its replay up to NaN within 5 ticks
   (the shadow's state then read zeros for the whole alarm). Drone: unchanged."""
-  if not cfg.ekf_cfg().use_nhc:
+  if not cfg.ground_vehicle:
     return rate
   return jnp.stack([jnp.zeros_like(rate[0]), jnp.zeros_like(rate[1]),
                     jnp.clip(rate[2], -cfg.model_rate_limit, cfg.model_rate_limit)])
@@ -263,7 +268,7 @@ def _model_force(cfg: ReconConfig, f_b, s: dyn.DynState, controls):
   (lateral / vertical speed, braking at speed: throttle x speed), so a shadow flying on it ran away within 1-3 s
   (hundreds of m/s, kilometres of reconstruction error; its GPS innovations then fell outside the gates). The
   shadow's accel-bias state absorbs the per-episode drive-gain / mass error as before. Drone: unchanged."""
-  if not cfg.ekf_cfg().use_nhc:
+  if not cfg.ground_vehicle:
     return f_b
   drive, rolling, drag, mass = cfg.ground_drive
   u = (math3d.quat_to_rot(s.quat).T @ s.vel)[0]
@@ -332,16 +337,15 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   """
   alarm = jnp.asarray(alarm) > 0
   mask = jnp.asarray(compromised_mask) > 0
-  g_i = SENSOR_NAMES.index("gyro")
+  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
   if cfg.sticky_gyro:   # a gyroscope blamed for sticky_after_s in this alarm stays replaced until the hand-back
-    mask = mask.at[g_i].set(mask[g_i] | (alarm & (state.blamed[g_i] > 0) & (state.gyro_t >= cfg.sticky_after_s)))
+    mask = mask.at[gi].set(mask[gi] | (alarm & (state.blamed[gi] > 0) & (state.gyro_t >= cfg.sticky_after_s)))
   x_meas = input_vector(ekf_state, readings)
   rising = alarm & ~state.active
   falling = state.active & ~alarm   # the recovery switch hands back on this tick
   shadow0, rate0 = _start(cfg, params, state, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
   rate = jnp.where(rising, rate0, state.rate)
-  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
   # A newly replaced accelerometer: the accel-bias state restarts (zero, model_accel_sigma) to learn the model's error.
   new_accel = mask[ai] & ~(state.blamed[ai] > 0)
   shadow = shadow.replace(accel_bias=jnp.where(new_accel, 0.0, shadow.accel_bias),
@@ -442,7 +446,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
                    rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
                    since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
                    blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0),
-                   gyro_t=jnp.where(alarm & mask[g_i], state.gyro_t + dt, 0.0))
+                   gyro_t=jnp.where(alarm & mask[gi], state.gyro_t + dt, 0.0))
   return new, x_rec, trusted, trusted_rd
 
 
