@@ -151,6 +151,12 @@ class RAVEnv(Env):
     self.sensor_cfg, self.ekf_cfg = self._default_estimation_configs()
     sensors_lib.check_rates(self.sensor_cfg, config.tick_dt)
     self.dt = config.tick_dt * config.ticks_per_step
+    # Reset samples the sensors once (the EKF's initial readings), so an env step starts on sensor tick
+    # 1 + n * ticks_per_step. When the GPS period divides ticks_per_step, the GPS is fresh on the same tick index j of
+    # every step for every env, (1 + j) % period == 0, and the other ticks' EKF update leaves its rows out statically
+    # (ekf_step(stale=("gps",)); tests/test_env.py checks the schedule on rollouts with auto-resets).
+    gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
+    self._gps_period = gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0 else None
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
@@ -265,14 +271,16 @@ class RAVEnv(Env):
     override = self._override_active(sim0)
     attack = info["attack"]
 
-    def tick(carry, key):
+    def tick(carry, xs):
       data, sim, min_obs = carry
-      data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack)
+      key, j = xs
+      data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack, phase=j)
       d_obs = worlds_lib.obstacle_sdf(world, self._query_pos(sim["truth"].pos))
       return (data, sim, jnp.minimum(min_obs, d_obs)), None
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
-    (data, sim, min_obs), _ = jax.lax.scan(tick, (state.pipeline_state, sim0, jnp.full((), 1e3)), keys)
+    ticks = jnp.arange(self.config.ticks_per_step, dtype=jnp.int32)   # unbatched under vmap: a real lax.cond below
+    (data, sim, min_obs), _ = jax.lax.scan(tick, (state.pipeline_state, sim0, jnp.full((), 1e3)), (keys, ticks))
 
     truth, nav = sim["truth"], sim["nav"]
     signals = self._signals(world, mission, truth, nav)
@@ -337,7 +345,8 @@ class RAVEnv(Env):
     return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
   # ---------------------------------------------------------------- one autopilot tick
-  def _tick(self, data, sim, mission, world, override_vel, override, key, attack=None):
+  def _tick(self, data, sim, mission, world, override_vel, override, key, attack=None, phase=None):
+    """One autopilot tick. phase: [] int32 index of the tick within its env step (from `step`), or None elsewhere."""
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
@@ -345,7 +354,7 @@ class RAVEnv(Env):
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
       sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
-    ekf = ekf_lib.ekf_step(self.ekf_cfg, sim["ekf"], rd_ekf, cfg.tick_dt)
+    ekf = self._ekf_update(sim["ekf"], rd_ekf, phase)
     if cfg.detector == "residual":   # actuation of the previous tick produced these readings
       hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
       sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
@@ -375,6 +384,15 @@ class RAVEnv(Env):
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
     data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
     return data, dict(sim, readings=readings, ekf=ekf)
+
+  def _ekf_update(self, ekf, readings, phase):
+    """The autopilot's EKF tick. Inside `step`, on a tick index where no env can have a fresh GPS sample, the GPS rows
+    are left out of the fusion (a lax.cond on the unbatched tick index: only one branch runs)."""
+    full = lambda: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt)
+    if phase is None or self._gps_period is None:
+      return full()
+    no_gps = lambda: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=("gps",))
+    return jax.lax.cond((phase + 1) % self._gps_period == 0, full, no_gps)
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""

@@ -310,9 +310,12 @@ def _linearise(cfg: EKFConfig, s: EKFState):
   return h(dx0), jax.jacfwd(h)(dx0)
 
 
-def _row_used(cfg: EKFConfig, i: int) -> bool:
-  """Whether observation row i (order `_ROWS`) can ever be fused with this configuration (static)."""
+def _row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
+  """Whether observation row i (order `_ROWS`) can be fused with this configuration (static), given the sensors
+  `stale` that cannot have a fresh sample this tick."""
   name = _ROWS[i]
+  if name.startswith("gps") and "gps" in stale:
+    return False
   if name.startswith("flow"):
     return cfg.use_flow
   if name == "odom":
@@ -338,7 +341,7 @@ def _gate(innov, S, gate, enable):
   return ratio, accept, jnp.where(accept, innov, 0.0)
 
 
-def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
+def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
   """Gating and sequential fusion of the rows, unrolled in low-rank form for accelerators (see `_fuse`).
 
   Products with H visit only its structural non-zeros (_H_SUPPORT), written as sums of scalars times rows of P (P is
@@ -354,14 +357,15 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   def hdot(i, ve):  # h_i . v, from v's entries
     return sum(h * ve[c] for c, h in hs[i].items())
 
-  PHt = [hdot(i, entries(P0)) for i in range(N_ROWS)]  # PHt[i] = P_0 h_i  [15]
+  # PHt[i] = P_0 h_i [15]; a stale row is never enabled and its gate record is not kept: left at zero
+  PHt = [hdot(i, entries(P0)) if _row_used(cfg, i, stale) else jnp.zeros(N_ERR, P0.dtype) for i in range(N_ROWS)]
   S = jnp.stack([hdot(i, entries(PHt[i])) for i in range(N_ROWS)]) + R
   ratio, accept, innov = _gate(innov, S, gate, enable)
 
   us, ues, cs = [], [], []  # us[j] = P_{j-1} h_j (ues[j] its entries), cs[j] = 1 / (h_j' P_{j-1} h_j + R_j) or 0
   dx = jnp.zeros(N_ERR, P0.dtype)
   for i in range(N_ROWS):
-    if not _row_used(cfg, i):
+    if not _row_used(cfg, i, stale):
       continue
     pht = PHt[i]
     for u, ue, c in zip(us, ues, cs):
@@ -380,7 +384,7 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   return P, dx, ratio, accept
 
 
-def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
+def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
   """The same gating and sequential fusion as `_rows_unrolled`, one dense row per iteration of a rolled loop: the
   CPU form (small trace, quick to compile; the unrolled form doubles the env's compile time there).
   P_i = P_{i-1} - c_i u_i u_i' with u_i = P_{i-1} h_i, c_i = 1 / (h_i' u_i + R_i) (exactly symmetric).
@@ -388,7 +392,7 @@ def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   """
   S = jnp.einsum("mi,ij,mj->m", H, P0, H) + R
   ratio, accept, innov = _gate(innov, S, gate, enable)
-  used = jnp.asarray([_row_used(cfg, i) for i in range(N_ROWS)]) & accept
+  used = jnp.asarray([_row_used(cfg, i, stale) for i in range(N_ROWS)]) & accept
 
   def body(i, carry):
     P, dx = carry
@@ -401,7 +405,7 @@ def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable):
   return P, dx, ratio, accept
 
 
-def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | None = None):
+def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | None = None, stale: tuple = ()):
   """Gated sequential scalar fusion of all observation rows of one tick.
 
   The rows are linearised once at the predicted state; gates use the predicted covariance; a group is rejected as a
@@ -421,9 +425,9 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   if unrolled:
-    P, dx, ratio, accept = _rows_unrolled(cfg, s.P, H, innov, R, gate, enable)
+    P, dx, ratio, accept = _rows_unrolled(cfg, s.P, H, innov, R, gate, enable, stale)
   else:
-    P, dx, ratio, accept = _rows_rolled(cfg, s.P, H, innov, R, gate, enable)
+    P, dx, ratio, accept = _rows_rolled(cfg, s.P, H, innov, R, gate, enable, stale)
   return _inject(cfg, s.replace(P=P), dx), innov, ratio, accept
 
 
@@ -459,11 +463,16 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
   return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
 
 
-def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> EKFState:
-  """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets."""
+def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stale: tuple = ()) -> EKFState:
+  """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets.
+
+  stale: static names of sensors (only "gps" is recognised) known to have no fresh sample this tick, for every
+  vehicle: their observation rows are left out of the traced fusion (cheaper; the same result as the full tick when
+  their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
+  """
   s = _predict(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
-  gps = readings.gps_fresh > 0.5
+  gps = (readings.gps_fresh > 0.5) & ("gps" not in stale)
   baro = readings.baro_fresh > 0.5
   mag = readings.mag_fresh > 0.5
   flow = (readings.flow_fresh > 0.5) & (s.pos[2] >= cfg.flow_min_height) & cfg.use_flow
@@ -472,7 +481,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt) -> E
   fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
   enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
   z, noise, gate = _measurement_rows(cfg, readings)
-  s, innov, ratio, accept = _fuse(cfg, s, z, noise, gate, enable)
+  s, innov, ratio, accept = _fuse(cfg, s, z, noise, gate, enable, stale=tuple(stale))
 
   # per-channel records (held while a channel is not fresh)
   fc = fresh[:N_CHANNELS]

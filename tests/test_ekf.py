@@ -449,3 +449,29 @@ def test_rejected_nonfinite_reading_does_not_reach_the_state(unrolled):
   for name in ("pos", "vel", "quat", "P"):
     assert np.all(np.isfinite(np.asarray(getattr(bad, name)))), name
     np.testing.assert_allclose(np.asarray(getattr(bad, name)), np.asarray(getattr(ref, name)), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("unrolled", [True, False], ids=["unrolled", "rolled"])
+def test_stale_gps_rows_left_out_equal_the_full_fusion(unrolled):
+  """With no fresh GPS sample, fusing with the GPS rows left out (stale=("gps",), what the env does on the ticks
+  between GPS samples) gives the state, records and gates of the full fusion."""
+  from specguard_jax import ekf as ekf_lib
+  for ecfg in (EKFConfig.drone(), EKFConfig.rover()):
+    s, r = _random_state(ecfg, jax.random.PRNGKey(5))
+    r = r.replace(gps_fresh=jnp.zeros(()))
+    z, noise, gate = ekf_lib._measurement_rows(ecfg, r)
+    gps_rows = np.array([n.startswith("gps") for n in ekf_lib._ROWS])
+    enable = jnp.asarray([ekf_lib._row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)]) & ~gps_rows
+    fuse = jax.jit(lambda stale: ekf_lib._fuse(ecfg, s, z, noise, gate, enable, unrolled=unrolled, stale=stale),
+                   static_argnums=0)
+    (a, _, ra, acc_a), (b, _, rb, acc_b) = fuse(()), fuse(("gps",))
+    np.testing.assert_array_equal(np.asarray(acc_a), np.asarray(acc_b))
+    np.testing.assert_allclose(np.asarray(ra)[~gps_rows], np.asarray(rb)[~gps_rows], rtol=1e-6)
+    for name in ("pos", "vel", "quat", "gyro_bias", "accel_bias", "P"):
+      np.testing.assert_allclose(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=1e-6, atol=1e-8,
+                                 err_msg=name)
+    step = jax.jit(lambda stale: ekf_step(ecfg, s, r, DT, stale=stale), static_argnums=0)
+    full, fast = step(()), step(("gps",))
+    for name in full.__dataclass_fields__:
+      np.testing.assert_allclose(np.asarray(getattr(full, name)), np.asarray(getattr(fast, name)), rtol=1e-6,
+                                 atol=1e-8, err_msg=name)
