@@ -354,7 +354,9 @@ class RAVEnv(Env):
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
       sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
-    ekf = self._ekf_update(sim["ekf"], rd_ekf, phase)
+    # inside `step`: whether this tick index can carry a GPS sample (None elsewhere: any tick can)
+    gps_due = None if phase is None or self._gps_period is None else (phase + 1) % self._gps_period == 0
+    ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
     if cfg.detector == "residual":   # actuation of the previous tick produced these readings
       hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
       sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
@@ -370,7 +372,7 @@ class RAVEnv(Env):
       anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
       rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                      u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
-                                                     anchor)
+                                                     anchor, gps_due)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)
@@ -385,14 +387,13 @@ class RAVEnv(Env):
     data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
     return data, dict(sim, readings=readings, ekf=ekf)
 
-  def _ekf_update(self, ekf, readings, phase):
-    """The autopilot's EKF tick. Inside `step`, on a tick index where no env can have a fresh GPS sample, the GPS rows
-    are left out of the fusion (a lax.cond on the unbatched tick index: only one branch runs)."""
-    full = lambda: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt)
-    if phase is None or self._gps_period is None:
-      return full()
-    no_gps = lambda: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=("gps",))
-    return jax.lax.cond((phase + 1) % self._gps_period == 0, full, no_gps)
+  def _ekf_update(self, ekf, readings, gps_due):
+    """The autopilot's EKF tick. gps_due False (unbatched: the tick index within `step`): no env can have a fresh GPS
+    sample, and the GPS rows are left out of the fusion (a lax.cond: only one branch runs). None: the full tick."""
+    step = lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=stale)
+    if gps_due is None:
+      return step(())
+    return jax.lax.cond(gps_due, lambda: step(()), lambda: step(("gps",)))
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""

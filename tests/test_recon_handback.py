@@ -74,3 +74,28 @@ def test_hand_back_restores_the_replaced_sensors_bias(flights, name):
   # the sensors' own readings come back on the hand-back tick
   np.testing.assert_array_equal(np.asarray(rd_ctrl.accel), np.asarray(rd.accel))
   np.testing.assert_array_equal(np.asarray(rd_ctrl.gyro), np.asarray(rd.gyro))
+
+
+def test_shadow_without_gps_rows_between_gps_samples_is_the_same():
+  """recon_tick(gps_due=...) (the env's schedule: the shadow filter leaves the GPS rows out where no GPS sample can be
+  fresh) gives the reconstruction of the full shadow update, alarm up (the shadow runs) blaming the gyro."""
+  cfg = recon.ReconConfig(n_controls=4, ekf=ekf_lib.EKFConfig.drone())
+  params = model_file.load_params(model_file.default_path("drone"), 4)
+  e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0))
+  controls = jnp.full((4,), 1.5 * 9.81 / 4)
+  mask = jnp.zeros(len(SENSOR_NAMES)).at[SENSOR_NAMES.index("gyro")].set(1.0)
+  tick = jax.jit(lambda st, rd, due: recon.recon_tick(cfg, params, st, e0, rd, controls, mask, True, DT, None, due))
+  full = jax.jit(lambda st, rd: recon.recon_tick(cfg, params, st, e0, rd, controls, mask, True, DT))
+  a = b = recon.recon_init(cfg, e0)
+  for k in range(1, 16):
+    rd = _readings(k)
+    a = tick(a, rd, jnp.asarray(k % 5 == 0))
+    b = full(b, rd)
+    xa, xb = a[1], b[1]
+    a, b = a[0], b[0]
+    np.testing.assert_allclose(np.asarray(xa), np.asarray(xb), rtol=1e-6, atol=1e-7)
+  for name in ("pos", "vel", "quat", "P", "innov", "gps_pos_age"):
+    np.testing.assert_allclose(np.asarray(getattr(a.shadow, name)), np.asarray(getattr(b.shadow, name)), rtol=1e-6,
+                               atol=1e-7, err_msg=name)
+  assert "cond" in str(jax.make_jaxpr(lambda st, rd, due: recon.recon_tick(
+      cfg, params, st, e0, rd, controls, mask, True, DT, None, due))(a, _readings(1), True))

@@ -315,8 +315,12 @@ def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf
 
 
 def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
-               compromised_mask, alarm, dt, anchor=None):
+               compromised_mask, alarm, dt, anchor=None, gps_due=None):
   """One autopilot tick of dt (s).
+
+  gps_due: optional [] bool, the same for every vehicle (unbatched under vmap): False on a tick where no GPS sample can
+  be fresh (envs/base.py's schedule); the shadow filter then leaves the GPS rows out (ekf_step(stale=("gps",)), a
+  lax.cond: only one branch runs). None: every tick may carry one.
 
   anchor: optional [4] GPS-free horizontal position (m) and velocity (m/s) of this tick (the detector's dead
   reckoning, detection.detector.position_check: dr[0], aid_vel); when the GPS becomes compromised (the alarm rises
@@ -402,7 +406,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
   qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
   shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)))
-  shadow = ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt)
+  shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale)
+  shadow = (shadow_step(()) if gps_due is None
+            else jax.lax.cond(gps_due, lambda: shadow_step(()), lambda: shadow_step(("gps",))))
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
   # ... with the correction folded into it: the gyro-bias state (the model rate's error) restarts at zero every tick,
