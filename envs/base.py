@@ -154,9 +154,11 @@ class RAVEnv(Env):
     # Reset samples the sensors once (the EKF's initial readings), so an env step starts on sensor tick
     # 1 + n * ticks_per_step. When the GPS period divides ticks_per_step, the GPS is fresh on the same tick index j of
     # every step for every env, (1 + j) % period == 0, and the other ticks' EKF update leaves its rows out statically
-    # (ekf_step(stale=("gps",)); tests/test_env.py checks the schedule on rollouts with auto-resets).
+    # (ekf_step(stale=("gps",)); tests/test_env.py checks the schedule on rollouts with auto-resets). Off on the CPU,
+    # where the env is compiled for tests and smoke runs and the second EKF variant only adds compile time.
     gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
-    self._gps_period = gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0 else None
+    self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
+                        and jax.default_backend() != "cpu" else None)
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()

@@ -128,8 +128,8 @@ def test_autoreset_starts_a_new_mission(drone_env):
   np.testing.assert_allclose(np.asarray(s2.info["mission"].waypoints[1]), old_wp[1])
   # The GPS schedule `step` relies on (envs/base.py: the GPS rows are left out of the EKF update on the other ticks):
   # every step, including the one that auto-reset env 0, ends on a GPS-fresh tick, sensor tick = 1 mod the period.
-  period = drone_env._gps_period
-  assert period == 5
+  period = round(1.0 / (drone_env.config.tick_dt * drone_env.sensor_cfg.gps_rate))
+  assert period == 5 and drone_env.config.ticks_per_step % period == 0
   for st in (s, s2):
     assert np.all(np.asarray(st.info["sim"]["sensors"].tick) % period == 1)
   assert np.all(np.asarray(s2.info["sim"]["readings"].gps_fresh) == 1.0)
@@ -137,24 +137,24 @@ def test_autoreset_starts_a_new_mission(drone_env):
 
 def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
   """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
-  every tick (a GPS sample dropped by mistake would move the estimate)."""
+  every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
   import copy
-  full = copy.copy(drone_env)
-  full._gps_period = None
+  env_skip, env_full = copy.copy(drone_env), copy.copy(drone_env)
+  env_skip._gps_period, env_full._gps_period = 5, None
   s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(8), 2))
   a = jnp.zeros((2, 3))
+  assert "cond" in str(jax.make_jaxpr(jax.vmap(env_skip.step))(s, a))
+  assert "cond" not in str(jax.make_jaxpr(jax.vmap(env_full.step))(s, a))
 
-  def three(env, s):
-    for _ in range(3):
-      s = jax.vmap(env.step)(s, a)
-    return s
-  fast, ref = jax.jit(lambda s: (three(drone_env, s), three(full, s)))(s)
-  assert "cond" in str(jax.make_jaxpr(jax.vmap(drone_env.step))(s, a))
+  def three(env, s):   # a rolled loop: one copy of each env step in the program
+    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
+  out_skip, out_full = jax.jit(lambda s: (three(env_skip, s), three(env_full, s)))(s)
   for name in ("pos", "vel", "quat", "P", "test_ratio", "accepted", "innov", "gps_pos_age"):
-    np.testing.assert_allclose(np.asarray(getattr(fast.info["sim"]["ekf"], name)),
-                               np.asarray(getattr(ref.info["sim"]["ekf"], name)), rtol=1e-6, atol=1e-7, err_msg=name)
-  np.testing.assert_allclose(np.asarray(fast.pipeline_state.qpos), np.asarray(ref.pipeline_state.qpos), rtol=1e-6,
-                             atol=1e-7)
+    np.testing.assert_allclose(np.asarray(getattr(out_skip.info["sim"]["ekf"], name)),
+                               np.asarray(getattr(out_full.info["sim"]["ekf"], name)), rtol=1e-6, atol=1e-7,
+                               err_msg=name)
+  np.testing.assert_allclose(np.asarray(out_skip.pipeline_state.qpos), np.asarray(out_full.pipeline_state.qpos),
+                             rtol=1e-6, atol=1e-7)
 
 
 def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
