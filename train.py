@@ -56,6 +56,8 @@ def parse_args(argv=None):
   ap.add_argument("--sequential-sweep", action="store_true",
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
+  ap.add_argument("--fused-ekf", action="store_true", default=None,
+                  help="the EKF's covariance work as one fused GPU kernel (one device; faster steps, longer compiles)")
   ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
   ap.add_argument("--env-groups", type=int,
                   help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
@@ -84,7 +86,7 @@ def build_config(a):
             "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
-            "num_devices": a.devices, "env_groups": a.env_groups}
+            "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:
     over["phase1_steps"] = a.steps // 2

@@ -32,11 +32,14 @@ def main():
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
   p.add_argument("--unroll", type=int, default=32)
+  p.add_argument("--xla-ekf", action="store_true", help="the EKF's covariance work in XLA, not the fused GPU kernel")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
   env = envs.make(a.vehicle)
+  if a.xla_ekf:
+    env._fused_ekf = False
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)

@@ -65,8 +65,11 @@ def main():
   add("mjx.step (shared model)", lambda d: V(lambda d: mjx.step(env.mjx_model, d))(d), state.pipeline_state, k)
   add("sensors.sense", lambda c: V(lambda s, t, kk: sensors_lib.sense(env.sensor_cfg, s, t, kk, dt)[0])(
       c, sim["truth"], keys), sim["sensors"], k)
-  add("ekf_step", lambda e: V(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, dt))(e, sim["readings"]),
-      sim["ekf"], k)
+  for fused in (False, True) if jax.default_backend() == "gpu" else (False,):
+    add(f"ekf_step ({'fused kernel' if fused else 'XLA'})", lambda e: V(lambda e, r: ekf_lib.ekf_step(
+        env.ekf_cfg, e, r, dt, fused=fused))(e, sim["readings"]), sim["ekf"], k)
+  add("ekf_step (XLA, GPS rows stale)", lambda e: V(lambda e, r: ekf_lib.ekf_step(
+      env.ekf_cfg, e, r, dt, stale=("gps",), fused=False))(e, sim["readings"]), sim["ekf"], k)
 
   if not a.plain:
     from specguard_jax import detection as detection_lib

@@ -96,8 +96,14 @@ class EnvConfig:
   # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
+  # The autopilot EKF's covariance work as one fused Pallas/Triton kernel per tick for the whole batch
+  # (specguard_jax/ekf_kernel.py; GPU only, one device): the same filter to float32 rounding, -9 % env step time at
+  # 65,536 envs on an H100, but each kernel variant adds ~28 s of Triton compile to every program (BENCHMARKS.md).
+  fused_ekf: bool = False
 
   def validate(self):
+    if self.fused_ekf and jax.default_backend() != "gpu":
+      raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
     for w in (self.world,) + tuple(self.worlds):
       if w not in worlds_lib.PRESETS:
         raise ValueError(f"unknown world {w!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
@@ -159,6 +165,7 @@ class RAVEnv(Env):
     gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
     self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
                         and jax.default_backend() != "cpu" else None)
+    self._fused_ekf = config.fused_ekf   # the autopilot EKF's covariance work as one GPU kernel (EnvConfig)
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
@@ -392,7 +399,8 @@ class RAVEnv(Env):
   def _ekf_update(self, ekf, readings, gps_due):
     """The autopilot's EKF tick. gps_due False (unbatched: the tick index within `step`): no env can have a fresh GPS
     sample, and the GPS rows are left out of the fusion (a lax.cond: only one branch runs). None: the full tick."""
-    step = lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=stale)
+    step = lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=stale,
+                                          fused=self._fused_ekf)
     if gps_due is None:
       return step(())
     return jax.lax.cond(gps_due, lambda: step(()), lambda: step(("gps",)))

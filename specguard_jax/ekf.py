@@ -226,8 +226,10 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings) -> EKFState:
                   accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc, reset=z, n_resets=z, time=z)
 
 
-def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
-  """Strapdown propagation of the nominal state and P over dt."""
+def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
+  """Strapdown propagation of the nominal state over dt. Returns (state with the predicted pos/vel/quat and the old P,
+  A [3, 3], B [3, 3]): the non-identity blocks of the error-state transition F = I + E, whose only blocks are
+  d(pos)/d(vel) = I dt, d(vel)/d(att) = A = -[R a]x dt, d(vel)/d(accel bias) = d(att)/d(gyro bias) = B = -R dt."""
   w = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE) - s.gyro_bias
   a = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE) - s.accel_bias
   # the IMU sample stands for the interval ending now: rotate the specific force with the mid-interval attitude
@@ -236,34 +238,44 @@ def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   acc_w = r @ a + jnp.array([0.0, 0.0, -GRAVITY])
   pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
   vel = s.vel + acc_w * dt
+  return s.replace(pos=pos, vel=vel, quat=quat), -_skew(r @ a) * dt, -r * dt
 
-  # P <- F P F' + Q with F = I + E, E's only blocks being d(pos)/d(vel) = I dt, d(vel)/d(att) = -[R a]x dt,
-  # d(vel)/d(accel bias) = d(att)/d(gyro bias) = -R dt. Written as row/column combinations of P (elementwise for XLA)
-  # instead of two dense batched 15x15 matmuls.
-  A = -_skew(r @ a) * dt
-  B = -r * dt
 
-  def rows(X, M, start):  # [3, 15]: M[3, 3] @ X[start:start+3, :]
-    return sum(M[:, m, None] * X[start + m][None, :] for m in range(3))
-
-  FP = P = s.P
-  FP = FP + jnp.concatenate([dt * P[VEL], rows(P, A, 6) + rows(P, B, 12), rows(P, B, 9), jnp.zeros((6, N_ERR))])
-
-  def cols(X, M, start):  # [15, 3]: X[:, start:start+3] @ M'
-    return sum(X[:, start + m, None] * M[None, :, m] for m in range(3))
-
-  P = FP + jnp.concatenate([dt * FP[:, VEL], cols(FP, A, 6) + cols(FP, B, 12), cols(FP, B, 9),
-                            jnp.zeros((N_ERR, 6))], axis=1)
-  q = jnp.concatenate([
+def _process_noise(cfg: EKFConfig, dt):
+  """[15] process-noise variances added to P's diagonal over one tick of dt (s)."""
+  return jnp.concatenate([
     jnp.zeros(3),
     jnp.full(3, (cfg.accel_noise * dt) ** 2),
     jnp.full(3, (cfg.gyro_noise * dt) ** 2),
     jnp.full(3, (cfg.gyro_bias_noise * dt) ** 2),
     jnp.full(3, (cfg.accel_bias_noise * dt) ** 2),
   ])
-  P = P + _EYE * q[None, :]
+
+
+def _predict_cov(cfg: EKFConfig, P, A, B, dt):
+  """P <- F P F' + Q (F = I + E, see `_predict_nominal`), then the tick's one symmetrisation and clamps.
+
+  Written as row/column combinations of P (elementwise for XLA) instead of two dense batched 15x15 matmuls."""
+
+  def rows(X, M, start):  # [3, 15]: M[3, 3] @ X[start:start+3, :]
+    return sum(M[:, m, None] * X[start + m][None, :] for m in range(3))
+
+  FP = P + jnp.concatenate([dt * P[VEL], rows(P, A, 6) + rows(P, B, 12), rows(P, B, 9), jnp.zeros((6, N_ERR))])
+
+  def cols(X, M, start):  # [15, 3]: X[:, start:start+3] @ M'
+    return sum(X[:, start + m, None] * M[None, :, m] for m in range(3))
+
+  P = FP + jnp.concatenate([dt * FP[:, VEL], cols(FP, A, 6) + cols(FP, B, 12), cols(FP, B, 9),
+                            jnp.zeros((N_ERR, 6))], axis=1)
+  P = P + _EYE * _process_noise(cfg, dt)[None, :]
   # The tick's one symmetrisation (a transpose): every later update of P this tick is exactly symmetric.
-  return s.replace(pos=pos, vel=vel, quat=quat, P=_condition(P))
+  return _condition(P)
+
+
+def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
+  """Strapdown propagation of the nominal state and P over dt."""
+  s, A, B = _predict_nominal(cfg, s, gyro, accel, dt)
+  return s.replace(P=_predict_cov(cfg, s.P, A, B, dt))
 
 
 def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
@@ -431,6 +443,53 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   return _inject(cfg, s.replace(P=P), dx), innov, ratio, accept
 
 
+def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, stale: tuple = (), unrolled: bool | None = None):
+  """The tick's covariance work in XLA: prediction of P (`_predict_cov`), gates, sequential fusion (`_rows_*`).
+  Returns (P [15, 15], dx [15], test ratio [13], accept [13] bool). `ekf_kernel.cov_tick` is the same as one GPU
+  kernel for a batch."""
+  if unrolled is None:
+    unrolled = jax.default_backend() != "cpu"
+  rows = _rows_unrolled if unrolled else _rows_rolled
+  return rows(cfg, _predict_cov(cfg, P, A, B, dt), H, innov, R, gate, enable, stale)
+
+
+def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
+  """The static description of the tick's covariance work that `ekf_kernel.cov_tick` is traced for."""
+  from specguard_jax import ekf_kernel
+  noise, gate = _noise_and_gates(cfg)
+  dt = float(dt)
+  q = np.array([0.0] * 3 + [(cfg.accel_noise * dt) ** 2] * 3 + [(cfg.gyro_noise * dt) ** 2] * 3
+               + [(cfg.gyro_bias_noise * dt) ** 2] * 3 + [(cfg.accel_bias_noise * dt) ** 2] * 3, np.float32)
+  return ekf_kernel.CovSpec(
+    dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
+    gate=tuple(float(v) for v in gate),
+    used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
+    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX))
+
+
+def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale: tuple, interpret: bool = False):
+  """`_cov_tick` for one vehicle whose vmap runs `ekf_kernel.cov_tick` (one fused kernel for the whole batch)."""
+  from specguard_jax import ekf_kernel
+  spec = _cov_spec(cfg, dt, stale)
+  R = jnp.asarray(spec.R, jnp.float32)
+  gate = jnp.asarray(spec.gate, jnp.float32)
+
+  @jax.custom_batching.custom_vmap
+  def tick(P, A, B, H, innov, enable):
+    return _cov_tick(cfg, P, A, B, dt, H, innov, R, gate, enable, stale, unrolled=True)
+
+  @tick.def_vmap
+  def _(axis_size, in_batched, P, A, B, H, innov, enable):
+    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
+            for x, b in zip((P, A, B, H, innov, enable), in_batched)]
+    P, A, B, H, innov, enable = args
+    ab = jnp.concatenate([A.reshape(axis_size, 9), B.reshape(axis_size, 9)], axis=1)
+    out = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
+    return out, (True, True, True, True)
+
+  return tick(P, A, B, H, innov, enable)
+
+
 def reset_block(P, idx, var, do):
   """Where `do`: clears rows/columns `idx` of P and sets their variance to var (elementwise: no scatter into P)."""
   mask = jnp.zeros(N_ERR, bool).at[jnp.asarray(idx)].set(True) & do
@@ -438,17 +497,22 @@ def reset_block(P, idx, var, do):
   return P + _EYE * jnp.where(mask, var, 0.0)[None, :]
 
 
+def _noise_and_gates(cfg: EKFConfig):
+  """Measurement noise std [13] and gates [13] (sigma) of the observation rows (order `_ROWS`), as numpy constants."""
+  noise = np.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
+                   + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
+                   + [cfg.nhc_noise] * 2, np.float32)
+  gate = np.array([cfg.gps_pos_gate] * 3 + [cfg.gps_vel_gate] * 3 + [cfg.baro_gate, cfg.mag_gate]
+                  + [cfg.flow_gate] * 2 + [cfg.odom_gate] + [cfg.nhc_gate] * 2, np.float32)
+  return noise, gate
+
+
 def _measurement_rows(cfg: EKFConfig, readings: SensorReadings):
   """Observation rows of one tick (order `_ROWS`): (z [13], noise std [13], gate [13] sigma)."""
-  f32 = jnp.float32
   z = jnp.concatenate([readings.gps_pos, readings.gps_vel, readings.baro_alt[None], readings.mag_yaw[None],
-                       readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(f32)
-  noise = jnp.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
-                    + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
-                    + [cfg.nhc_noise] * 2, f32)
-  gate = jnp.array([cfg.gps_pos_gate] * 3 + [cfg.gps_vel_gate] * 3 + [cfg.baro_gate, cfg.mag_gate]
-                   + [cfg.flow_gate] * 2 + [cfg.odom_gate] + [cfg.nhc_gate] * 2, f32)
-  return z, noise, gate
+                       readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(jnp.float32)
+  noise, gate = _noise_and_gates(cfg)
+  return z, jnp.asarray(noise), jnp.asarray(gate)
 
 
 def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorReadings):
@@ -463,14 +527,18 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
   return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
 
 
-def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stale: tuple = ()) -> EKFState:
+def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stale: tuple = (),
+             fused: bool | str = False) -> EKFState:
   """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets.
 
   stale: static names of sensors (only "gps" is recognised) known to have no fresh sample this tick, for every
   vehicle: their observation rows are left out of the traced fusion (cheaper; the same result as the full tick when
   their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
+  fused: under vmap, run the covariance work as one GPU kernel for the batch (`ekf_kernel`; dt must be a Python
+  float; GPU only). "interpret": the kernel through Pallas' interpreter (tests, any backend). The same filter either
+  way (to float32 rounding).
   """
-  s = _predict(cfg, state, readings.gyro, readings.accel, dt)
+  s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
   gps = (readings.gps_fresh > 0.5) & ("gps" not in stale)
   baro = readings.baro_fresh > 0.5
@@ -481,7 +549,15 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
   enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
   z, noise, gate = _measurement_rows(cfg, readings)
-  s, innov, ratio, accept = _fuse(cfg, s, z, noise, gate, enable, stale=tuple(stale))
+  pred, H = _linearise(cfg, s)
+  innov = z - pred
+  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  if fused:
+    P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, tuple(stale),
+                                           interpret=fused == "interpret")
+  else:
+    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, tuple(stale))
+  s = _inject(cfg, s.replace(P=P), dx)
 
   # per-channel records (held while a channel is not fresh)
   fc = fresh[:N_CHANNELS]

@@ -72,6 +72,9 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
     tiny(num_envs=5, unroll_length=3)
   with pytest.raises(ValueError, match="unknown config key"):
     config.from_dict({"bogus": 1})
+  if jax.default_backend() != "gpu":
+    with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
+      tiny(fused_ekf=True)
   bad = tmp_path / "c.json"
   bad.write_text("{not json")
   assert train_cli.main(["--config", str(bad), "--out", str(tmp_path / "r")]) == 2

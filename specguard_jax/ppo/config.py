@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import jax
+
 from specguard_jax.types import SENSOR_NAMES
 
 VARIANTS = ("rc", "pc")
@@ -83,11 +85,14 @@ class TrainConfig:
   eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
+  fused_ekf: bool = False           # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
 
   def validate(self):
     from envs import worlds as worlds_lib
+    if self.fused_ekf and jax.default_backend() != "gpu":
+      raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
     if self.vehicle not in VEHICLES:
       raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
     if self.variant not in VARIANTS:

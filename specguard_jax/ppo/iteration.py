@@ -46,7 +46,8 @@ class Carry:
 
 def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv)."""
-  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual)
+  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
+                fused_ekf=cfg.fused_ekf)
   if phase == 1:
     return envs_lib.make(cfg.vehicle, control_mode="override", **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
