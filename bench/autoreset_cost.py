@@ -32,14 +32,12 @@ def main():
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
   p.add_argument("--unroll", type=int, default=32)
-  p.add_argument("--xla-ekf", action="store_true", help="the EKF's covariance work in XLA, not the fused GPU kernel")
+  p.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as the fused GPU kernel")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
-  env = envs.make(a.vehicle)
-  if a.xla_ekf:
-    env._fused_ekf = False
+  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf)
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)
