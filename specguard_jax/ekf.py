@@ -241,15 +241,10 @@ def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
   return s.replace(pos=pos, vel=vel, quat=quat), -_skew(r @ a) * dt, -r * dt
 
 
-def _process_noise(cfg: EKFConfig, dt):
-  """[15] process-noise variances added to P's diagonal over one tick of dt (s)."""
-  return jnp.concatenate([
-    jnp.zeros(3),
-    jnp.full(3, (cfg.accel_noise * dt) ** 2),
-    jnp.full(3, (cfg.gyro_noise * dt) ** 2),
-    jnp.full(3, (cfg.gyro_bias_noise * dt) ** 2),
-    jnp.full(3, (cfg.accel_bias_noise * dt) ** 2),
-  ])
+def _process_noise(cfg: EKFConfig, dt, xp=jnp):
+  """[15] process-noise variances added to P's diagonal over one tick of dt (s); xp=np for a static table."""
+  sigma = (0.0, cfg.accel_noise, cfg.gyro_noise, cfg.gyro_bias_noise, cfg.accel_bias_noise)
+  return xp.concatenate([xp.full(3, (x * dt) ** 2, xp.float32) for x in sigma])
 
 
 def _predict_cov(cfg: EKFConfig, P, A, B, dt):
@@ -320,6 +315,13 @@ def _linearise(cfg: EKFConfig, s: EKFState):
 
   dx0 = jnp.zeros(N_ERR)
   return h(dx0), jax.jacfwd(h)(dx0)
+
+
+def _innovations(cfg: EKFConfig, s: EKFState, z):
+  """Innovations [13] of the rows z [13] against the state (heading wrapped to (-pi, pi]) and H [13, 15] there."""
+  pred, H = _linearise(cfg, s)
+  innov = z - pred
+  return innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW])), H
 
 
 def _row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
@@ -430,9 +432,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   * rolled (CPU): one dense row update per iteration of a fori_loop, a small trace that compiles quickly.
   Returns (state, innov[13], test_ratio[13], accepted[13] bool).
   """
-  pred, H = _linearise(cfg, s)
-  innov = z - pred
-  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  innov, H = _innovations(cfg, s, z)
   R = noise ** 2
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
@@ -458,8 +458,7 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
   from specguard_jax import ekf_kernel
   noise, gate = _noise_and_gates(cfg)
   dt = float(dt)
-  q = np.array([0.0] * 3 + [(cfg.accel_noise * dt) ** 2] * 3 + [(cfg.gyro_noise * dt) ** 2] * 3
-               + [(cfg.gyro_bias_noise * dt) ** 2] * 3 + [(cfg.accel_bias_noise * dt) ** 2] * 3, np.float32)
+  q = _process_noise(cfg, dt, np)
   return ekf_kernel.CovSpec(
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
@@ -519,9 +518,7 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
   """|innovation| / sqrt(H P H' + R) [N_CHANNELS] of every channel's current reading against `state`, without fusing
   anything (whether or not the channel has a fresh sample): how many sigmas a sensor disagrees with this estimate."""
   z, noise, _ = _measurement_rows(cfg, readings)
-  pred, H = _linearise(cfg, state)
-  innov = z - pred
-  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  innov, H = _innovations(cfg, state, z)
   S = jnp.einsum("mi,ij,mj->m", H, state.P, H) + noise ** 2
   out = jnp.abs(innov) / jnp.sqrt(S)
   return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
@@ -549,9 +546,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
   enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
   z, noise, gate = _measurement_rows(cfg, readings)
-  pred, H = _linearise(cfg, s)
-  innov = z - pred
-  innov = innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW]))
+  innov, H = _innovations(cfg, s, z)
   if fused:
     P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, tuple(stale),
                                            interpret=fused == "interpret")

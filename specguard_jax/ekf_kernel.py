@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 N = 16          # padded error-state size (15 -> 16: Triton shapes are powers of two)
-BLOCK = 2       # vehicles per program (H100, 65,536 envs: 2 x 1 warp 428 us, 4 x 1 707 us, 16 x 4 slower still; bench/ekf_kernel.py)
+BLOCK = 2       # vehicles per program (H100, 65,536 envs, bench/ekf_kernel.py: 2 x 1 warp 428 us, 4 x 1 707 us)
 _N_ERR = 15
 _N_ROWS = 13
 
