@@ -50,6 +50,7 @@ class CovSpec:
   group_of_row: tuple
   var_min: tuple
   var_max: tuple
+  h_support: tuple = ()   # [13] the error-state columns each row's H can be non-zero in (ekf._H_SUPPORT)
 
   def consts(self) -> np.ndarray:
     """[8, 16] float32 table the kernel reads its per-row constants from (padding rows: R = gate = 1, unused)."""
@@ -192,3 +193,145 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
   )(P16, H16, ab32, innov16, en16, consts)
   Po, dx, ratio, acc = out
   return Po[:nb, :_N_ERR, :_N_ERR], dx[:nb, :_N_ERR], ratio[:nb, :_N_ROWS], acc[:nb, :_N_ROWS] > 0.5
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# The same work with one vehicle per GPU thread ("lanes"): every per-vehicle scalar is a [BLOCK] vector and the
+# inputs are laid out vehicle-minor ([entries, B]), so P's 225 entries are 225 coalesced loads and all arithmetic is
+# per-lane straight-line code with E's and H's sparsity resolved statically (no shuffles, no masked reductions).
+
+LANES = 128     # vehicles per program (one per thread: 4 warps)
+
+
+def _lane_kernel(P_ref, H_ref, ab_ref, innov_ref, en_ref, Po_ref, dx_ref, ratio_ref, acc_ref, *, spec: CovSpec):
+  n = _N_ERR
+  dt = spec.dt
+  # ---- prediction: X = F P F' (F = I + E) + Q, then the tick's symmetrisation and clamps (ekf._predict_cov)
+  P = [[P_ref[i * n + j, :] for j in range(n)] for i in range(n)]
+  ab = [ab_ref[k, :] for k in range(18)]
+  E = {r: [] for r in range(n)}                          # E[r] = [(k, coefficient)]: E's non-zeros in row r
+  for m in range(3):
+    E[m].append((3 + m, dt))                             # d(pos)/d(vel)
+    for i in range(3):
+      E[3 + i].append((6 + m, ab[3 * i + m]))            # d(vel)/d(att) = A
+      E[3 + i].append((12 + m, ab[9 + 3 * i + m]))       # d(vel)/d(abias) = B
+      E[6 + i].append((9 + m, ab[9 + 3 * i + m]))        # d(att)/d(gbias) = B
+
+  def e_dot(r, get):          # E[r, :] . v with v[k] = get(k), grouped as the XLA form groups it
+    terms = [c * get(k) for k, c in E[r] if k < 12] if r < 6 else [c * get(k) for k, c in E[r]]
+    acc = terms[0]
+    for t in terms[1:]:
+      acc = acc + t
+    if 3 <= r <= 5:            # rows of velocity: (A P[att]) + (B P[abias])
+      b = [c * get(k) for k, c in E[r] if k >= 12]
+      acc = acc + (b[0] + b[1] + b[2])
+    return acc
+
+  FP = [[P[r][c] + e_dot(r, lambda k: P[k][c]) if r < 9 else P[r][c] for c in range(n)] for r in range(n)]
+  X = [[FP[r][c] + e_dot(c, lambda k: FP[r][k]) if c < 9 else FP[r][c] for c in range(n)] for r in range(n)]
+  for i in range(n):
+    X[i][i] = X[i][i] + spec.q[i]
+  S = [[None] * n for _ in range(n)]
+  for i in range(n):
+    for j in range(i, n):
+      v = 0.5 * (X[i][j] + X[j][i])
+      S[i][j] = S[j][i] = jnp.where(jnp.isfinite(v), v, 0.0)
+  s, lift = [], []
+  for i in range(n):
+    d = S[i][i]
+    si = jnp.sqrt(jnp.minimum(1.0, spec.var_max[i] / jnp.maximum(d, 1e-30)))
+    s.append(si)
+    lift.append(jnp.maximum(spec.var_min[i] - d * (si * si), 0.0))
+  P = [[None] * n for _ in range(n)]
+  for i in range(n):
+    for j in range(i, n):
+      v = S[i][j] * (s[i] * s[j])
+      P[i][j] = P[j][i] = v + lift[i] if i == j else v
+
+  # ---- gates on the predicted variances
+  used = [i for i in range(_N_ROWS) if spec.used[i]]
+  k = 0
+  h = {}
+  for i in range(_N_ROWS):
+    for c in spec.h_support[i]:
+      if spec.used[i]:
+        h.setdefault(i, {})[c] = H_ref[k, :]
+      k += 1
+
+  def hdot(i, v):             # h_i . v for v indexable by error-state column
+    out = None
+    for c, hc in h[i].items():
+      out = hc * v[c] if out is None else out + hc * v[c]
+    return out
+
+  innov = [innov_ref[i, :] for i in range(_N_ROWS)]
+  enable = [en_ref[i, :] > 0.5 for i in range(_N_ROWS)]
+  ratio, bad = [], []
+  for i in range(_N_ROWS):
+    if i in h:   # S_i = h_i P h_i' + R_i on h_i's support
+      Si = hdot(i, {r: hdot(i, P[r]) for r in h[i]}) + spec.R[i]
+    else:
+      Si = spec.R[i]
+    r_i = innov[i] * innov[i] / (spec.gate[i] * spec.gate[i] * Si)
+    r_i = jnp.where(jnp.isfinite(r_i), r_i, 1e6)
+    ratio.append(r_i)
+    bad.append(enable[i] & ~(r_i <= 1.0))
+  group_bad = {}
+  for i in range(_N_ROWS):
+    g = spec.group_of_row[i]
+    group_bad[g] = bad[i] if g not in group_bad else group_bad[g] | bad[i]
+  accept = [enable[i] & ~group_bad[spec.group_of_row[i]] for i in range(_N_ROWS)]
+
+  # ---- sequential fusion, one accepted row at a time (EKF2's P -= K H P, written as P - c u u')
+  dx = [jnp.zeros_like(innov[0])] * n
+  for i in used:
+    u = [hdot(i, P[r]) for r in range(n)]                               # P h_i (P symmetric)
+    c = jnp.where(accept[i], 1.0 / (hdot(i, u) + spec.R[i]), 0.0)
+    g = c * (jnp.where(accept[i], innov[i], 0.0) - hdot(i, dx))
+    dx = [dx[r] + g * u[r] for r in range(n)]
+    cu = [c * ua for ua in u]
+    for a in range(n):        # one triangle, mirrored: P stays exactly symmetric
+      for b in range(a, n):
+        P[a][b] = P[b][a] = P[a][b] - cu[a] * u[b]
+
+  for i in range(n):
+    for j in range(n):
+      Po_ref[i * n + j, :] = P[i][j]
+  for r in range(n):
+    dx_ref[r, :] = dx[r]
+  for i in range(_N_ROWS):
+    ratio_ref[i, :] = ratio[i]
+    acc_ref[i, :] = accept[i].astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "interpret", "num_warps", "block"))
+def cov_tick_lanes(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, num_warps: int = 4,
+                   block: int = LANES):
+  """`cov_tick` with one vehicle per thread (the same arguments and results)."""
+  from jax.experimental import pallas as pl
+  from jax.experimental.pallas import triton as plt
+
+  nb = P.shape[0]
+  bp = -(-nb // block) * block
+  f32 = jnp.float32
+  nnz = [(i, c) for i in range(_N_ROWS) for c in spec.h_support[i]]
+
+  def lanes(x, rows):         # [B, k] -> [rows, bp]: vehicle-minor, zero-padded
+    return _pad(x.astype(f32).T, (rows, bp))
+
+  Pt = lanes(P.reshape(nb, _N_ERR * _N_ERR), 256)
+  Ht = lanes(jnp.stack([H[:, i, c] for i, c in nnz], axis=1), 64)
+  col = lambda rows: pl.BlockSpec((rows, block), lambda i: (0, i))
+  out = pl.pallas_call(
+    functools.partial(_lane_kernel, spec=spec),
+    out_shape=[jax.ShapeDtypeStruct((256, bp), f32)] + [jax.ShapeDtypeStruct((N, bp), f32)] * 3,
+    grid=(bp // block,),
+    in_specs=[col(256), col(64), col(32), col(N), col(N)],
+    out_specs=[col(256), col(N), col(N), col(N)],
+    input_output_aliases={0: 0},
+    interpret=interpret,
+    compiler_params=None if interpret else plt.CompilerParams(num_warps=num_warps, num_stages=1),
+  )(Pt, Ht, lanes(ab, 32), lanes(innov, N), lanes(enable, N))
+  Po, dx, ratio, acc = out
+  return (Po[:_N_ERR * _N_ERR, :nb].T.reshape(nb, _N_ERR, _N_ERR), dx[:_N_ERR, :nb].T, ratio[:_N_ROWS, :nb].T,
+          acc[:_N_ROWS, :nb].T > 0.5)
