@@ -34,12 +34,8 @@ def timed(fn, args, reps=20):
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("--envs", type=int, default=65536)
-  p.add_argument("--blocks", type=int, nargs="*", default=[2])
-  p.add_argument("--warps", type=int, nargs="+", default=[1])
-  p.add_argument("--lanes", nargs="*", default=["128:4"],
-                 help="BLOCK:WARPS variants of the one-vehicle-per-thread kernel (cov_tick_lanes)")
-  p.add_argument("--ticks", nargs="+", default=["full", "stale"], choices=("full", "stale"),
-                 help="full: every row fresh (the GPS tick); stale: GPS rows left out (the other four ticks)")
+  p.add_argument("--blocks", type=int, nargs="+", default=[16])
+  p.add_argument("--warps", type=int, nargs="+", default=[4])
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   a = p.parse_args()
   from specguard_jax import ekf as ekf_lib
@@ -51,22 +47,12 @@ def main():
   args = _batch(cfg, a.envs, seed=0)
   dt = 0.02
   print(f"{jax.devices()[0].device_kind}, {a.vehicle}, {a.envs} envs: us per tick (compile s)")
-  for stale in [() if t == "full" else ("gps",) for t in a.ticks]:
+  for stale in [(), ("gps",)]:
     xla = jax.vmap(lambda P, A, B, H, innov, en: ekf_lib._cov_tick(
         cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, stale, unrolled=True))
     t, c = timed(xla, args)
     print(f"  stale={stale!s:10s} XLA                      {t:9.1f} us  ({c:.1f} s)", flush=True)
     spec = ekf_lib._cov_spec(cfg, dt, stale)
-    for lv in a.lanes:
-      blk, w = (int(x) for x in lv.split(":"))
-      def lanes(P, A, B, H, innov, en):
-        ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
-        return ekf_kernel.cov_tick_lanes(spec, P, ab, H, innov, en, num_warps=w, block=blk)
-      try:
-        t, c = timed(lanes, args)
-        print(f"  stale={stale!s:10s} lanes block {blk:3d} warps {w}   {t:9.1f} us  ({c:.1f} s)", flush=True)
-      except Exception as e:  # noqa: BLE001
-        print(f"  stale={stale!s:10s} lanes block {blk:3d} warps {w}   failed: {str(e).splitlines()[0][:200]}")
     for blk in a.blocks:
       for w in a.warps:
         def fused(P, A, B, H, innov, en):

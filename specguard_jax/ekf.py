@@ -463,7 +463,7 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
     used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
+    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX))
 
 
 def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale: tuple, interpret: bool = False):
