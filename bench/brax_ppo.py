@@ -223,19 +223,20 @@ def main(argv=None):
   p.add_argument("--no-evals", action="store_true", help="no evals (final_reward NaN)")
   p.add_argument("--hidden", type=int, nargs="+", default=[256, 256, 256, 256])
   p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--fused-ekf", action="store_true", help="the env's EKF covariance work as the fused GPU kernel")
   p.add_argument("--verbose", action="store_true", help="one line per epoch on stderr")
   p.add_argument("--json", default=None)
   a = p.parse_args(argv)
   if a.envs % a.minibatches:
     p.error(f"--envs {a.envs} must be a multiple of --minibatches {a.minibatches}")
   import envs
-  env = envs.make(a.vehicle, control_mode="override", override_frame="body")
+  env = envs.make(a.vehicle, control_mode="override", override_frame="body", fused_ekf=a.fused_ekf)
   log = (lambda s: print(s, file=sys.stderr, flush=True)) if a.verbose else None
   r = run_brax_ppo(env, num_envs=a.envs, num_timesteps=a.steps, unroll_length=a.unroll,
                    batch_size=a.envs // a.minibatches, num_minibatches=a.minibatches,
                    num_updates_per_batch=a.epochs, episode_length=a.episode_length, seed=a.seed,
                    hidden=a.hidden, num_evals=a.evals, run_evals=not a.no_evals, num_eval_envs=a.eval_envs, log=log)
-  r.update(vehicle=a.vehicle, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches, sgd_epochs=a.epochs,
+  r.update(vehicle=a.vehicle, fused_ekf=a.fused_ekf, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches, sgd_epochs=a.epochs,
            hidden=list(a.hidden), backend=jax.default_backend(), trainer="brax.training.agents.ppo")
   print(f"brax-ppo {a.vehicle} {jax.default_backend()}: {a.envs} envs, unroll {a.unroll}, {a.minibatches} minibatches"
         f" x {a.epochs} epochs: {r['env_steps']} env steps, {r['sps']:.0f} env steps/s (updates included, compile"
