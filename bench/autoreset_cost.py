@@ -2,7 +2,7 @@
 every step (the default; Brax's loop uses it) vs refreshed once per rollout (the trainer's form, refresh_pool amortised
 over the unroll).
 
-  python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32]
+  python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env, zero action.
 """
@@ -33,16 +33,29 @@ def main():
   p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
   p.add_argument("--unroll", type=int, default=32)
   p.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as the fused GPU kernel")
+  p.add_argument("--phase2", action="store_true",
+                 help="the phase-2 env (reactive control, residual detector, reconstruction and its shadow EKF)")
+  p.add_argument("--shadow-xla", action="store_true",
+                 help="with --fused-ekf --phase2: the shadow EKF keeps the XLA form (the autopilot's uses the kernel)")
+  p.add_argument("--step-only", action="store_true", help="time Vmap(env).step only (no AutoReset variants)")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
-  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf)
+  phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
+  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+  if a.shadow_xla:
+    env._fused_shadow = False
+  label = f"phase {2 if a.phase2 else 1}, EKF {'kernel' if a.fused_ekf else 'XLA'}" + (
+      ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)
     act = jnp.zeros((n, env.action_size))
     rows = {"Vmap(env).step (no reset)": timed(lambda s: jax.vmap(env.step)(s, act), st, a.unroll)}
+    if a.step_only:
+      print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step {rows[next(iter(rows))]:.3f} ms")
+      continue
     per_step = AutoReset(VmapWrapper(env))
     bs = jax.jit(per_step.reset)(keys)
     rows["AutoReset, pool refreshed per step"] = timed(lambda s: per_step.step(s, act), bs, a.unroll)
@@ -52,7 +65,7 @@ def main():
     rows["AutoReset, pool refreshed per rollout"] = step + refresh
     rows["  of which the step"] = step
     rows[f"  of which refresh_pool({a.unroll}) / {a.unroll}"] = refresh
-    print(f"{jax.devices()[0].device_kind}, {a.vehicle} phase 1, {n} envs (ms per env step)")
+    print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs (ms per env step)")
     for k, v in rows.items():
       print(f"  {k:40s} {v:8.3f}")
 

@@ -96,9 +96,10 @@ class EnvConfig:
   # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
-  # The autopilot EKF's covariance work as one fused Pallas/Triton kernel per tick for the whole batch
-  # (specguard_jax/ekf_kernel.py; GPU only, one device): the same filter to float32 rounding, -9 % env step time at
-  # 65,536 envs on an H100, but each kernel variant adds ~28 s of Triton compile to every program (BENCHMARKS.md).
+  # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one fused
+  # Pallas/Triton kernel per tick for the whole batch (specguard_jax/ekf_kernel.py; GPU only, one device): the same
+  # filters to float32 rounding, -9 % phase-1 env step time at 65,536 envs on an H100, but each kernel variant adds
+  # ~28 s of Triton compile to every program (BENCHMARKS.md).
   fused_ekf: bool = False
 
   def validate(self):
@@ -166,6 +167,8 @@ class RAVEnv(Env):
     self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
                         and jax.default_backend() != "cpu" else None)
     self._fused_ekf = config.fused_ekf   # the autopilot EKF's covariance work as one GPU kernel (EnvConfig)
+    self._fused_shadow = config.fused_ekf   # ... and the reconstruction's shadow EKF's (bench/autoreset_cost.py
+                                            # --phase2 turns it off alone to measure its share)
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
@@ -381,7 +384,7 @@ class RAVEnv(Env):
       anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
       rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                      u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
-                                                     anchor, gps_due)
+                                                     anchor, gps_due, fused=self._fused_shadow)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)

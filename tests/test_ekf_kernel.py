@@ -114,3 +114,35 @@ def test_compiled_kernel_equals_the_xla_tick(vehicle):
   for stale in [(), ("gps",)]:
     args = _batch(cfg, 4099, seed=11)
     _check(_xla(cfg, stale)(*args), _fused(cfg, stale, interpret=False)(*args))
+
+
+def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
+  """The reconstruction's shadow EKF (recon_tick(fused=...), vmapped over three vehicles blaming the gyro, the
+  accelerometer and the GPS, alarm up) with the interpreted kernel against the XLA form, 25 ticks."""
+  from test_recon_handback import DT as RDT, _readings
+  from specguard_jax.estimation import model_file, recon
+  from specguard_jax.types import SENSOR_NAMES
+  cfg = recon.ReconConfig(n_controls=4, ekf=ekf_lib.EKFConfig.drone())
+  params = model_file.load_params(model_file.default_path("drone"), 4)
+  e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0))
+  controls = jnp.full((4,), 1.5 * 9.81 / 4)
+  masks = jnp.stack([jnp.zeros(len(SENSOR_NAMES)).at[SENSOR_NAMES.index(s)].set(1.0) for s in ("gyro", "accel", "gps")])
+
+  def run(fused):
+    tick = jax.jit(jax.vmap(lambda st, rd, m: recon.recon_tick(cfg, params, st, e0, rd, controls, m, True, RDT,
+                                                                fused=fused)[:2], in_axes=(0, None, 0)))
+    st = jax.vmap(lambda _: recon.recon_init(cfg, e0))(jnp.arange(3))
+    assert ("pallas_call" in str(jax.make_jaxpr(tick)(st, _readings(1), masks))) == bool(fused)
+    xs = []
+    for k in range(1, 26):
+      st, x = tick(st, _readings(k), masks)
+      xs.append(x)
+    return st, jnp.stack(xs)
+
+  (ref, x_ref), (out, x_out) = run(False), run("interpret")
+  np.testing.assert_allclose(np.asarray(x_out), np.asarray(x_ref), rtol=1e-4, atol=1e-5)
+  for name in ("pos", "vel", "quat", "gyro_bias", "accel_bias"):
+    np.testing.assert_allclose(np.asarray(getattr(out.shadow, name)), np.asarray(getattr(ref.shadow, name)),
+                               atol=1e-5, err_msg=name)
+  np.testing.assert_allclose(np.asarray(out.shadow.P), np.asarray(ref.shadow.P), rtol=1e-3, atol=1e-7)
+  np.testing.assert_array_equal(np.asarray(out.shadow.accepted), np.asarray(ref.shadow.accepted))

@@ -315,8 +315,11 @@ def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf
 
 
 def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
-               compromised_mask, alarm, dt, anchor=None, gps_due=None):
+               compromised_mask, alarm, dt, anchor=None, gps_due=None, fused: bool | str = False):
   """One autopilot tick of dt (s).
+
+  fused: the shadow filter's covariance work as the fused GPU kernel under vmap (ekf.ekf_step's `fused`; dt a Python
+  float): the same filter to float32 rounding.
 
   gps_due: optional [] bool, the same for every vehicle (unbatched under vmap): False on a tick where no GPS sample can
   be fresh (envs/base.py's schedule); the shadow filter then leaves the GPS rows out (ekf_step(stale=("gps",)), a
@@ -406,7 +409,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
   qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
   shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)))
-  shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale)
+  shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
   shadow = (shadow_step(()) if gps_due is None
             else jax.lax.cond(gps_due, lambda: shadow_step(()), lambda: shadow_step(("gps",))))
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
