@@ -118,7 +118,8 @@ def test_compiled_kernel_equals_the_xla_tick(vehicle):
 
 def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
   """The reconstruction's shadow EKF (recon_tick(fused=...), vmapped over three vehicles blaming the gyro, the
-  accelerometer and the GPS, alarm up) with the interpreted kernel against the XLA form, 25 ticks."""
+  accelerometer and the GPS, alarm up) with the kernel (interpreted on the CPU, compiled on a GPU) against the XLA
+  form, 25 ticks."""
   from test_recon_handback import DT as RDT, _readings
   from specguard_jax.estimation import model_file, recon
   from specguard_jax.types import SENSOR_NAMES
@@ -139,7 +140,7 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
       xs.append(x)
     return st, jnp.stack(xs)
 
-  (ref, x_ref), (out, x_out) = run(False), run("interpret")
+  (ref, x_ref), (out, x_out) = run(False), run(True if jax.default_backend() == "gpu" else "interpret")
   np.testing.assert_allclose(np.asarray(x_out), np.asarray(x_ref), rtol=1e-4, atol=1e-5)
   for name in ("pos", "vel", "quat", "gyro_bias", "accel_bias"):
     np.testing.assert_allclose(np.asarray(getattr(out.shadow, name)), np.asarray(getattr(ref.shadow, name)),
