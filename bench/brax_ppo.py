@@ -236,8 +236,8 @@ def main(argv=None):
                    batch_size=a.envs // a.minibatches, num_minibatches=a.minibatches,
                    num_updates_per_batch=a.epochs, episode_length=a.episode_length, seed=a.seed,
                    hidden=a.hidden, num_evals=a.evals, run_evals=not a.no_evals, num_eval_envs=a.eval_envs, log=log)
-  r.update(vehicle=a.vehicle, fused_ekf=a.fused_ekf, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches, sgd_epochs=a.epochs,
-           hidden=list(a.hidden), backend=jax.default_backend(), trainer="brax.training.agents.ppo")
+  r.update(vehicle=a.vehicle, fused_ekf=a.fused_ekf, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches,
+           sgd_epochs=a.epochs, hidden=list(a.hidden), backend=jax.default_backend(), trainer="brax.training.agents.ppo")
   print(f"brax-ppo {a.vehicle} {jax.default_backend()}: {a.envs} envs, unroll {a.unroll}, {a.minibatches} minibatches"
         f" x {a.epochs} epochs: {r['env_steps']} env steps, {r['sps']:.0f} env steps/s (updates included, compile"
         f" excluded), compile {r['compile_s']:.1f} s, wall {r['wall_s']:.1f} s, final eval reward"
