@@ -57,7 +57,7 @@ def parse_args(argv=None):
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
   ap.add_argument("--fused-ekf", action="store_true", default=None,
-                  help="the EKF's covariance work as one fused GPU kernel (one device; faster steps, longer compiles)")
+                  help="the EKF's covariance work as one fused GPU kernel (faster steps, longer compiles)")
   ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
   ap.add_argument("--env-groups", type=int,
                   help="independent auto-reset env groups (default 0: one per device); fix it to get the same "

@@ -3,6 +3,7 @@ every step (the default; Brax's loop uses it) vs refreshed once per rollout (the
 over the unroll).
 
   python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
+  python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -39,6 +40,8 @@ def main():
   p.add_argument("--shadow-xla", action="store_true",
                  help="with --fused-ekf --phase2: the shadow EKF keeps the XLA form (the autopilot's uses the kernel)")
   p.add_argument("--step-only", action="store_true", help="time Vmap(env).step only (no AutoReset variants)")
+  p.add_argument("--raw-mjx", action="store_true",
+                 help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
@@ -54,6 +57,13 @@ def main():
     st = jax.jit(jax.vmap(env.reset))(keys)
     act = jnp.zeros((n, env.action_size))
     plain = timed(lambda s: jax.vmap(env.step)(s, act), st, a.unroll)
+    if a.raw_mjx:
+      from mujoco import mjx
+      ticks = env.config.ticks_per_step
+      raw = timed(lambda d: jax.lax.fori_loop(0, ticks, lambda _, d: jax.vmap(lambda d: mjx.step(env.mjx_model, d))(d),
+                                              d), st.pipeline_state, a.unroll)
+      print(f"{jax.devices()[0].device_kind}, {a.vehicle}, {n} envs: raw MJX per env step ({ticks} x mjx.step) "
+            f"{raw:.3f} ms; Vmap(env).step ({label}) / raw MJX = {plain / raw:.2f}x")
     if a.step_only:
       print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step {plain:.3f} ms")
       continue

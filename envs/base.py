@@ -236,7 +236,7 @@ class RAVEnv(Env):
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
     k_sens2, k_run = jax.random.split(k_run)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
-    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings)
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=bool(self._fused_ekf))   # the kernel's layout of P
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,
@@ -334,10 +334,11 @@ class RAVEnv(Env):
     obs = self._observation(world, mission, sim)
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
-    monitor, spec_rob, _ = self.spec_eval.monitor_update(info["spec_monitor"], signals)
-    reward, per_spec = self.reward_fn(signals, normalize=self.config.reward_normalize,
-                                      critical_weight=self.config.critical_weight,
-                                      binary=self.config.reward == "binary")
+    with jax.named_scope("stl_reward"):
+      monitor, spec_rob, _ = self.spec_eval.monitor_update(info["spec_monitor"], signals)
+      reward, per_spec = self.reward_fn(signals, normalize=self.config.reward_normalize,
+                                        critical_weight=self.config.critical_weight,
+                                        binary=self.config.reward == "binary")
     if self.config.reward == "survival":   # FTC baseline: 1 per step in flight, 0 on the step it crashes
       reward = rewards_lib.survival_reward(collision | crash | nan)
     reward = jnp.where(finite, reward, 0.0)
@@ -361,42 +362,48 @@ class RAVEnv(Env):
     """One autopilot tick. phase: [] int32 index of the tick within its env step (from `step`), or None elsewhere."""
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
-    sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
-    readings = self._attack(readings, sim, attack)
+    with jax.named_scope("sensors"):
+      sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
+      readings = self._attack(readings, sim, attack)
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
       sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
     # inside `step`: whether this tick index can carry a GPS sample (None elsewhere: any tick can)
     gps_due = None if phase is None or self._gps_period is None else (phase + 1) % self._gps_period == 0
-    ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
-    if cfg.detector == "residual":   # actuation of the previous tick produced these readings
-      hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
-      sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
-                                                        cfg.tick_dt, hold))
-    elif cfg.detector == "oracle":
-      sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
-                                                      cfg.detector_delay))
+    with jax.named_scope("ekf"):
+      ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
+    with jax.named_scope("detector"):
+      if cfg.detector == "residual":   # actuation of the previous tick produced these readings
+        hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
+        sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf,
+                                                          self._actuation(sim), cfg.tick_dt, hold))
+      elif cfg.detector == "oracle":
+        sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
+                                                        cfg.detector_delay))
     est, rd_ctrl = ekf, readings
     if cfg.reconstruction:  # DeLorean: mission logic and autopilot run on the reconstructed state while under attack
       u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
       handback = sim["recon"].active & ~(sim["det"].alarm > 0)
       # A GPS blamed by the residual detector: the shadow restarts from its GPS-free dead reckoning.
       anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
-      rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
-                                                     u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
-                                                     anchor, gps_due, fused=self._fused_shadow)
+      with jax.named_scope("reconstruction"):
+        rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
+                                                       u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
+                                                       anchor, gps_due, fused=self._fused_shadow)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)
     if self.recovery is not None:   # baseline hook (UnRocker): the estimate the navigator and autopilot fly on
       sim, est = self.recovery.post_ekf(sim, est, readings)
     landed = self._vehicle_landed(sim)
-    nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
+    with jax.named_scope("navigator"):
+      nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
-    data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
+    with jax.named_scope("autopilot"):   # the vehicle's controller; its mjx.step is scoped "physics"
+      data, sim = self._vehicle_tick(data, sim, mission, vel_sp, leg_dir)
     return data, dict(sim, readings=readings, ekf=ekf)
 
   def _ekf_update(self, ekf, readings, gps_due):

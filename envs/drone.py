@@ -101,7 +101,8 @@ class DroneEnv(RAVEnv):
     drag = -(DRAG_LIN * v_rel + DRAG_QUAD * jnp.linalg.norm(v_rel) * v_rel) * dr["drag_scale"]
     rot_drag = -DRAG_ROT * data.qvel[3:6]
     data = data.replace(ctrl=thrusts, qfrc_applied=jnp.concatenate([drag, rot_drag]))
-    data = mjx.step(self._model(dr), data)
+    with jax.named_scope("physics"):
+      data = mjx.step(self._model(dr), data)
     # ---- analytic ground (landing legs) ----
     z, vz = data.qpos[2], data.qvel[2]
     below = z <= GROUND_Z

@@ -9,6 +9,7 @@ Forces are applied as generalised forces on the slide/slide/hinge joints; the st
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
@@ -108,7 +109,8 @@ class RoverEnv(RAVEnv):
     mz = CG_FRONT * fy_f * jnp.cos(steer) - CG_REAR * fy_r
     qfrc = jnp.stack([c * fxb - s * fyb, s * fxb + c * fyb, mz])
     data = data.replace(qfrc_applied=qfrc)
-    data = mjx.step(self._model(dr), data)
+    with jax.named_scope("physics"):
+      data = mjx.step(self._model(dr), data)
     truth = self._truth(data.qpos, data.qvel, data.qacc)
     veh = {"steer": steer, "throttle": throttle}
     return data, dict(sim, truth=truth, ctrl=ctrl, vehicle=veh)

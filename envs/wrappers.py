@@ -65,11 +65,11 @@ class AutoReset(Wrapper):
     inner = {k: v for k, v in info.items() if k not in _POOL_KEYS}
     out = self.env.step(state.replace(info=inner), action)
     done = out.done > 0
-    # Finished envs take consecutive pool entries.
-    rank = jnp.cumsum(done.astype(jnp.int32)) - 1
-    idx = (cursor + rank) % pool_n
-    fresh = jax.tree.map(lambda x: x[idx], pool)
-    merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+    with jax.named_scope("autoreset"):   # finished envs take consecutive pool entries
+      rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+      idx = (cursor + rank) % pool_n
+      fresh = jax.tree.map(lambda x: x[idx], pool)
+      merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
     new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=out.obs,
                     final_spec_robustness=out.info["spec_robustness"],
                     pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32), pool_refresh=ref_ptr,

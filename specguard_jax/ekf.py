@@ -119,7 +119,9 @@ class EKFConfig:
 class EKFState:
   """Filter state of one vehicle.
 
-  pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: [15, 15] error-state covariance.
+  pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: [15, 15] error-state covariance, or
+    [16, 16] with a zero last row and column (`ekf_init(padded=True)`: the fused kernel's layout, kept between ticks
+    so that P enters and leaves the kernel without a copy; every function here accepts either).
   gps_pos_age, gps_vel_age, hgt_age: [] s since the last accepted horizontal GPS position / GPS velocity /
     height (GPS height or baro) fusion.
   innov: [11] last innovation (measurement - prediction) per channel (CHANNELS), held between samples.
@@ -178,11 +180,32 @@ def _normalize_quat(q):
 _VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
 _EYE = np.eye(N_ERR, dtype=np.float32)
 _VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
+N_PAD = 16   # size of the padded layout of P (ekf_init(padded=True))
+
+
+def _clamps(n: int):
+  """(var_min [n], var_max [n], eye [n, n]) for P of size n (15, or 16 padded: the padding row's bounds 0 and 1
+  keep its zero diagonal at zero)."""
+  if n == N_ERR:
+    return _VAR_MIN, _VAR_MAX, _EYE
+  pad = n - N_ERR
+  return (np.pad(_VAR_MIN, (0, pad)), np.pad(_VAR_MAX, (0, pad), constant_values=1.0), np.eye(n, dtype=np.float32))
+
+
+def unpadded(P):
+  """P [.., 15, 15] of either layout."""
+  return P[..., :N_ERR, :N_ERR]
+
+
+def _layout_like(P15, P_ref):
+  """P15 [15, 15] in the layout of P_ref (zero-padded when P_ref is)."""
+  pad = P_ref.shape[-1] - N_ERR
+  return jnp.pad(P15, ((0, pad), (0, pad))) if pad else P15
 
 
 def _diag(P):
-  """[15] diagonal of P [15, 15] as a strided slice (jnp.diag lowers to a gather, which XLA does not fuse well)."""
-  return P.reshape(-1)[::N_ERR + 1]
+  """[n] diagonal of P [n, n] as a strided slice (jnp.diag lowers to a gather, which XLA does not fuse well)."""
+  return P.reshape(-1)[::P.shape[-1] + 1]
 
 
 def _condition(P, symmetrise: bool = True):
@@ -196,20 +219,22 @@ def _condition(P, symmetrise: bool = True):
     P = 0.5 * (P + P.T)
   P = jnp.where(jnp.isfinite(P), P, 0.0)
   d = _diag(P)
+  var_min, var_max, eye = _clamps(P.shape[-1])
   # upper clamp: scale row/column i by sqrt(max/var) (a congruence, so PSD is kept)
-  s = jnp.sqrt(jnp.minimum(1.0, _VAR_MAX / jnp.maximum(d, 1e-30)))
+  s = jnp.sqrt(jnp.minimum(1.0, var_max / jnp.maximum(d, 1e-30)))
   # lower clamp: adding a nonnegative diagonal keeps PSD
-  lift = jnp.maximum(_VAR_MIN - d * (s * s), 0.0)
-  return P * (s[:, None] * s[None, :]) + _EYE * lift[None, :]
+  lift = jnp.maximum(var_min - d * (s * s), 0.0)
+  return P * (s[:, None] * s[None, :]) + eye * lift[None, :]
 
 
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def ekf_init(cfg: EKFConfig, readings: SensorReadings) -> EKFState:
+def ekf_init(cfg: EKFConfig, readings: SensorReadings, padded: bool = False) -> EKFState:
   """Initial state from one set of readings: horizontal position and velocity from GPS, height from the barometer,
   roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases.
   Use the readings of the first tick after `init_sensors` (every sensor fresh), with the vehicle at rest or nearly.
+  padded: keep P as [16, 16] with a zero last row and column (the layout of the fused kernel, ekf_step(fused=...)).
   """
   f = readings.accel
   roll = jnp.arctan2(f[1], f[2])
@@ -222,7 +247,7 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings) -> EKFState:
   z = jnp.zeros((), jnp.float32)
   zc = jnp.zeros((N_CHANNELS,), jnp.float32)
   return EKFState(pos=pos, vel=readings.gps_vel, quat=quat, gyro_bias=jnp.zeros(3), accel_bias=jnp.zeros(3),
-                  P=jnp.diag(sig ** 2), gps_pos_age=z, gps_vel_age=z, hgt_age=z, innov=zc, test_ratio=zc,
+                  P=jnp.diag(jnp.pad(sig ** 2, (0, N_PAD - N_ERR if padded else 0))), gps_pos_age=z, gps_vel_age=z, hgt_age=z, innov=zc, test_ratio=zc,
                   accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc, reset=z, n_resets=z, time=z)
 
 
@@ -270,7 +295,7 @@ def _predict_cov(cfg: EKFConfig, P, A, B, dt):
 def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
   s, A, B = _predict_nominal(cfg, s, gyro, accel, dt)
-  return s.replace(P=_predict_cov(cfg, s.P, A, B, dt))
+  return s.replace(P=_layout_like(_predict_cov(cfg, unpadded(s.P), A, B, dt), s.P))
 
 
 def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
@@ -436,11 +461,9 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   R = noise ** 2
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
-  if unrolled:
-    P, dx, ratio, accept = _rows_unrolled(cfg, s.P, H, innov, R, gate, enable, stale)
-  else:
-    P, dx, ratio, accept = _rows_rolled(cfg, s.P, H, innov, R, gate, enable, stale)
-  return _inject(cfg, s.replace(P=P), dx), innov, ratio, accept
+  rows = _rows_unrolled if unrolled else _rows_rolled
+  P, dx, ratio, accept = rows(cfg, unpadded(s.P), H, innov, R, gate, enable, stale)
+  return _inject(cfg, s.replace(P=_layout_like(P, s.P)), dx), innov, ratio, accept
 
 
 def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, stale: tuple = (), unrolled: bool | None = None):
@@ -450,7 +473,8 @@ def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, stale: tup
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
-  return rows(cfg, _predict_cov(cfg, P, A, B, dt), H, innov, R, gate, enable, stale)
+  P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, unpadded(P), A, B, dt), H, innov, R, gate, enable, stale)
+  return _layout_like(P_new, P), dx, ratio, accept
 
 
 def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
@@ -463,7 +487,7 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
     used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX))
+    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
 
 
 def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale: tuple, interpret: bool = False):
@@ -491,9 +515,10 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale:
 
 def reset_block(P, idx, var, do):
   """Where `do`: clears rows/columns `idx` of P and sets their variance to var (elementwise: no scatter into P)."""
-  mask = jnp.zeros(N_ERR, bool).at[jnp.asarray(idx)].set(True) & do
+  n = P.shape[-1]
+  mask = jnp.zeros(n, bool).at[jnp.asarray(idx)].set(True) & do
   P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
-  return P + _EYE * jnp.where(mask, var, 0.0)[None, :]
+  return P + np.eye(n, dtype=np.float32) * jnp.where(mask, var, 0.0)[None, :]
 
 
 def _noise_and_gates(cfg: EKFConfig):
@@ -519,7 +544,7 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
   anything (whether or not the channel has a fresh sample): how many sigmas a sensor disagrees with this estimate."""
   z, noise, _ = _measurement_rows(cfg, readings)
   innov, H = _innovations(cfg, state, z)
-  S = jnp.einsum("mi,ij,mj->m", H, state.P, H) + noise ** 2
+  S = jnp.einsum("mi,ij,mj->m", H, unpadded(state.P), H) + noise ** 2
   out = jnp.abs(innov) / jnp.sqrt(S)
   return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
 
@@ -614,4 +639,4 @@ def ekf_body_velocity(state: EKFState):
 
 def ekf_std(state: EKFState):
   """[15] 1-σ of the error state (pos m, vel m/s, attitude rad, gyro bias rad/s, accel bias m/s^2)."""
-  return jnp.sqrt(jnp.maximum(jnp.diag(state.P), 0.0))
+  return jnp.sqrt(jnp.maximum(_diag(unpadded(state.P)), 0.0))

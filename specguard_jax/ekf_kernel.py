@@ -10,8 +10,11 @@ Why a kernel: in XLA the vmapped covariance work is ~60 kernels per tick, each r
 [B, 15]-sized buffers (BENCHMARKS.md, session 7), so at 65,536 vehicles the EKF was ~40 % of an env step against
 physics' ~35 %. Here one program owns BLOCK vehicles and keeps each one's P in registers as a [BLOCK, 16, 16] tile
 (Triton needs power-of-two shapes: P is padded with a zero row and column) for the whole tick: P is read once and
-written once. Rows and columns of the tile are taken with one-hot masked sums (Triton cannot index a register tile);
-F's structure (I + E, E's non-zero columns known statically) keeps the products to 12 outer products each way.
+written once. The env keeps P in that padded layout between ticks when the kernel is on (`ekf_init(padded=True)`),
+and H comes in as its support entries only ([B, 32] instead of a padded [B, 16, 16]): at 65,536 vehicles the pad and
+slice copies around the kernel had cost ~130 us per tick against the kernel's ~270 (bench/gpu_profile.py --ekf).
+Rows and columns of the tile are taken with one-hot masked sums (Triton cannot index a register tile); F's structure
+(I + E, E's non-zero columns known statically) keeps the products to 12 outer products each way.
 
 Numerics: the same operations as the XLA form in a different summation order (equal to float32 rounding;
 tests/test_ekf_kernel.py runs the kernel in Pallas' interpret mode on the CPU against `ekf._cov_tick`). P stays
@@ -39,7 +42,8 @@ class CovSpec:
 
   dt: tick (s). q: [15] process-noise variances added to P's diagonal. R, gate: [13] measurement variances and gates
   (sigma). used: [13] whether each row can be fused at all this tick (static). group_of_row: [13] gate group of each
-  row (a group is rejected as a whole). var_min, var_max: [15] diagonal clamps.
+  row (a group is rejected as a whole). var_min, var_max: [15] diagonal clamps. h_support: [13] tuples, the
+  error-state columns each row of H can be non-zero in (only those entries of H are passed to the kernel).
   """
 
   dt: float
@@ -50,6 +54,15 @@ class CovSpec:
   group_of_row: tuple
   var_min: tuple
   var_max: tuple
+  h_support: tuple
+
+  def h_entries(self) -> tuple:
+    """((row, column), ...) of H the kernel reads: the support of every usable row, in row order."""
+    return tuple((i, c) for i in range(_N_ROWS) if self.used[i] for c in self.h_support[i])
+
+  def h_width(self) -> int:
+    """Columns of the kernel's H input (a power of two, >= 16)."""
+    return max(N, 1 << (len(self.h_entries()) - 1).bit_length())
 
   def consts(self) -> np.ndarray:
     """[8, 16] float32 table the kernel reads its per-row constants from (padding rows: R = gate = 1, unused)."""
@@ -65,7 +78,7 @@ class CovSpec:
     return c
 
 
-def _kernel(P_ref, H_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, ratio_ref, acc_ref, *, spec: CovSpec):
+def _kernel(P_ref, hd_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, ratio_ref, acc_ref, *, spec: CovSpec):
   f32 = jnp.float32
   lane = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
   is_k = [lane == k for k in range(N)]
@@ -113,7 +126,10 @@ def _kernel(P_ref, H_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, rati
 
   # ---- gates on the predicted variances
   used = [i for i in range(_N_ROWS) if spec.used[i]]
-  h = {i: H_ref[:, i, :] for i in used}                                  # [BLOCK, 16] rows of H
+  h = {}                                                                 # [BLOCK, 16] rows of H, from their support
+  for e, (i, c) in enumerate(spec.h_entries()):
+    term = hd_ref[:, e][:, None] * oh[c][None, :]
+    h[i] = term if i not in h else h[i] + term
   pht = {i: jnp.sum(P * h[i][:, None, :], axis=2) for i in used}         # P h_i (P symmetric)
   hPh = sum(jnp.sum(h[i] * pht[i], axis=1)[:, None] * oh[i][None, :] for i in used)
   S = hPh + c_ref[1, :][None, :]
@@ -160,10 +176,12 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
              block: int = BLOCK):
   """The tick's covariance work for a batch of B vehicles.
 
-  P: [B, 15, 15] covariance before the prediction. ab: [B, 18], F's blocks A (d vel / d att, row-major) then
-  B (-R dt). H: [B, 13, 15] observation Jacobian at the predicted state. innov: [B, 13] innovations. enable: [B, 13]
-  bool, rows with a fresh sample. Returns (P [B, 15, 15], dx [B, 15], test ratio [B, 13], accept [B, 13] bool).
-  interpret: run through Pallas' interpreter (any backend; for tests).
+  P: [B, 15, 15] covariance before the prediction, or [B, 16, 16] already padded with a zero row and column (the
+  layout `ekf.ekf_init(padded=True)` keeps it in: then P goes into and out of the kernel without a copy).
+  ab: [B, 18], F's blocks A (d vel / d att, row-major) then B (-R dt). H: [B, 13, 15] observation Jacobian at the
+  predicted state (only its entries on `spec.h_support` are read). innov: [B, 13] innovations. enable: [B, 13] bool,
+  rows with a fresh sample. Returns (P in the layout it came in, dx [B, 15], test ratio [B, 13], accept [B, 13]
+  bool). interpret: run through Pallas' interpreter (any backend; for tests).
   """
   from jax.experimental import pallas as pl
   from jax.experimental.pallas import triton as plt
@@ -171,8 +189,10 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
   nb = P.shape[0]
   bp = -(-nb // block) * block
   f32 = jnp.float32
+  padded = P.shape[-1] == N
   P16 = _pad(P.astype(f32), (bp, N, N))
-  H16 = _pad(H.astype(f32), (bp, N, N))
+  # [bp, W]: H's entries on its support (static slices, which XLA fuses into the producer of H)
+  hd = _pad(jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1).astype(f32), (bp, spec.h_width()))
   ab32 = _pad(ab.astype(f32), (bp, 32))
   innov16 = _pad(innov.astype(f32), (bp, N))
   en16 = _pad(enable.astype(f32), (bp, N))
@@ -183,12 +203,13 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
     functools.partial(_kernel, spec=spec),
     out_shape=[jax.ShapeDtypeStruct((bp, N, N), f32)] + [jax.ShapeDtypeStruct((bp, N), f32)] * 3,
     grid=(bp // block,),
-    in_specs=[tile, tile, pl.BlockSpec((block, 32), lambda i: (i, 0)), vec, vec,
-              pl.BlockSpec((8, N), lambda i: (0, 0))],
+    in_specs=[tile, pl.BlockSpec((block, spec.h_width()), lambda i: (i, 0)),
+              pl.BlockSpec((block, 32), lambda i: (i, 0)), vec, vec, pl.BlockSpec((8, N), lambda i: (0, 0))],
     out_specs=[tile, vec, vec, vec],
     input_output_aliases={0: 0},
     interpret=interpret,
     compiler_params=None if interpret else plt.CompilerParams(num_warps=num_warps, num_stages=1),
-  )(P16, H16, ab32, innov16, en16, consts)
+  )(P16, hd, ab32, innov16, en16, consts)
   Po, dx, ratio, acc = out
-  return Po[:nb, :_N_ERR, :_N_ERR], dx[:nb, :_N_ERR], ratio[:nb, :_N_ROWS], acc[:nb, :_N_ROWS] > 0.5
+  Po = Po[:nb] if padded else Po[:nb, :_N_ERR, :_N_ERR]
+  return Po, dx[:nb, :_N_ERR], ratio[:nb, :_N_ROWS], acc[:nb, :_N_ROWS] > 0.5

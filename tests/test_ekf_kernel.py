@@ -65,6 +65,24 @@ def test_kernel_equals_the_xla_tick_interpreted(vehicle, stale):
   _check(_xla(cfg, stale)(*args), _fused(cfg, stale, interpret=True)(*args))
 
 
+def test_padded_layout_of_P_goes_through_the_kernel_unchanged():
+  """P kept as [16, 16] with a zero last row and column (ekf_init(padded=True)): the kernel takes and returns that
+  layout, equal to the [15, 15] result with the padding still exactly zero; the XLA tick accepts it too."""
+  cfg = ekf_lib.EKFConfig.drone()
+  P, A, B, H, innov, en = _batch(cfg, 21, seed=5)
+  P16 = jnp.pad(P, ((0, 0), (0, 1), (0, 1)))
+  ref = _fused(cfg, (), interpret=True)(P, A, B, H, innov, en)
+  out = _fused(cfg, (), interpret=True)(P16, A, B, H, innov, en)
+  assert out[0].shape == (21, 16, 16)
+  np.testing.assert_array_equal(np.asarray(out[0][:, :15, :15]), np.asarray(ref[0]))
+  assert not np.any(np.asarray(out[0][:, 15, :])) and not np.any(np.asarray(out[0][:, :, 15]))
+  for x, y in zip(out[1:], ref[1:]):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  xla16 = _xla(cfg, ())(P16, A, B, H, innov, en)
+  np.testing.assert_array_equal(np.asarray(xla16[0][:, :15, :15]), np.asarray(_xla(cfg, ())(P, A, B, H, innov, en)[0]))
+  assert not np.any(np.asarray(xla16[0][:, 15, :]))
+
+
 def test_kernel_keeps_nonfinite_out_and_matches_under_nested_vmap():
   cfg = ekf_lib.EKFConfig.drone()
   P, A, B, H, innov, en = _batch(cfg, 24, seed=3)
@@ -90,14 +108,16 @@ def test_ekf_step_with_the_kernel_follows_the_xla_step():
   rd[2] = rd[2].replace(gps_pos=rd[2].gps_pos.at[50:, 0].add(1.0 - 50.0))
   readings = jax.tree.map(lambda *x: jnp.stack(x), *rd)
 
-  def run(fused):
+  def run(fused, padded=False):
     def one(r):
-      s0 = ekf_lib.ekf_init(cfg, jax.tree.map(lambda x: x[0], r))
+      s0 = ekf_lib.ekf_init(cfg, jax.tree.map(lambda x: x[0], r), padded=padded)
       step = lambda s, x: (ekf_lib.ekf_step(cfg, s, x, DT, fused=fused),) * 2
       return jax.lax.scan(step, s0, jax.tree.map(lambda x: x[1:], r))[1]
     return jax.jit(jax.vmap(one))(readings)
 
-  ref, out = run(False), run("interpret")
+  ref, out = run(False), run("interpret", padded=True)    # the env's layout with the kernel: P padded to [16, 16]
+  assert out.P.shape[-2:] == (16, 16) and not np.any(np.asarray(out.P[..., 15, :]))
+  out = out.replace(P=ekf_lib.unpadded(out.P))
   assert float(ref.n_resets[1, -1]) >= 1 and float(ref.n_resets[2, -1]) == 0   # the scenarios do what they say
   np.testing.assert_array_equal(np.asarray(out.accepted), np.asarray(ref.accepted))
   np.testing.assert_array_equal(np.asarray(out.n_resets), np.asarray(ref.n_resets))
@@ -125,11 +145,11 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
   from specguard_jax.types import SENSOR_NAMES
   cfg = recon.ReconConfig(n_controls=4, ekf=ekf_lib.EKFConfig.drone())
   params = model_file.load_params(model_file.default_path("drone"), 4)
-  e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0))
   controls = jnp.full((4,), 1.5 * 9.81 / 4)
   masks = jnp.stack([jnp.zeros(len(SENSOR_NAMES)).at[SENSOR_NAMES.index(s)].set(1.0) for s in ("gyro", "accel", "gps")])
 
   def run(fused):
+    e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0), padded=bool(fused))   # the env keeps P padded with the kernel
     tick = jax.jit(jax.vmap(lambda st, rd, m: recon.recon_tick(cfg, params, st, e0, rd, controls, m, True, RDT,
                                                                 fused=fused)[:2], in_axes=(0, None, 0)))
     st = jax.vmap(lambda _: recon.recon_init(cfg, e0))(jnp.arange(3))
@@ -145,5 +165,32 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
   for name in ("pos", "vel", "quat", "gyro_bias", "accel_bias"):
     np.testing.assert_allclose(np.asarray(getattr(out.shadow, name)), np.asarray(getattr(ref.shadow, name)),
                                atol=1e-5, err_msg=name)
-  np.testing.assert_allclose(np.asarray(out.shadow.P), np.asarray(ref.shadow.P), rtol=1e-3, atol=1e-7)
+  assert out.shadow.P.shape[-1] == 16 and not np.any(np.asarray(out.shadow.P[:, 15]))
+  np.testing.assert_allclose(np.asarray(ekf_lib.unpadded(out.shadow.P)), np.asarray(ref.shadow.P), rtol=1e-3,
+                             atol=1e-7)
   np.testing.assert_array_equal(np.asarray(out.shadow.accepted), np.asarray(ref.shadow.accepted))
+
+
+def test_phase2_env_with_the_kernel_follows_the_xla_env():
+  """The whole phase-2 env (autopilot EKF and the reconstruction's shadow on the kernel, interpreted on the CPU; P in
+  the padded layout from reset on) against the XLA env: 8 closed-loop steps (40 ticks) of 3 vehicles."""
+  import envs
+  kw = dict(control_mode="reactive", detector="residual", reconstruction=True)
+  ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
+  env._fused_ekf = env._fused_shadow = "interpret"
+  keys = jax.random.split(jax.random.PRNGKey(3), 3)
+
+  def rollout(e):
+    s0 = jax.vmap(e.reset)(keys)
+    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
+    return s0, jax.lax.scan(step, s0, None, length=8)[1]
+
+  (s0_ref, ref), (s0, out) = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+  sim = s0.info["sim"]
+  assert sim["ekf"].P.shape == (3, 16, 16) and sim["recon"].shadow.P.shape == (3, 16, 16)
+  assert s0_ref.info["sim"]["ekf"].P.shape == (3, 15, 15)
+  np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-3, atol=1e-3)
+  np.testing.assert_allclose(np.asarray(out.reward), np.asarray(ref.reward), rtol=1e-3, atol=1e-4)
+  e, e_ref = out.info["sim"]["ekf"], ref.info["sim"]["ekf"]
+  assert not np.any(np.asarray(e.P[..., 15, :]))
+  np.testing.assert_allclose(np.asarray(ekf_lib.unpadded(e.P)), np.asarray(e_ref.P), rtol=1e-2, atol=1e-6)

@@ -408,7 +408,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # process noise (the accel-bias state restarts when the accelerometer is newly replaced, above).
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
   qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
-  shadow = shadow.replace(P=shadow.P + jnp.diag(jnp.zeros(15).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)))
+  q_diag = jnp.zeros(shadow.P.shape[-1]).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)   # P of either layout
+  shadow = shadow.replace(P=shadow.P + jnp.diag(q_diag))
   shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
   shadow = (shadow_step(()) if gps_due is None
             else jax.lax.cond(gps_due, lambda: shadow_step(()), lambda: shadow_step(("gps",))))

@@ -81,6 +81,20 @@ def make_agents(cfg: TrainConfig):
   return sg, aa
 
 
+def group_step(batched, mesh=None):
+  """The env step of G auto-reset groups: (state [G, B/G, ...], action [G, B/G, n]) -> state.
+
+  On a mesh of several devices the groups axis is split explicitly (shard_map): each device steps its own groups
+  and the env is compiled once, per device, instead of being handed to XLA's SPMD partitioner. That is also what
+  lets the fused EKF kernel (a Pallas call, which has no sharding rule) run data-parallel. mesh None or of one
+  device: a plain vmap."""
+  step = jax.vmap(batched.step)
+  if mesh is None or mesh.size == 1:
+    return step
+  spec = jax.sharding.PartitionSpec(distributed.AXIS)
+  return jax.shard_map(step, mesh=mesh, in_specs=(spec, spec), out_specs=spec, check_vma=False)
+
+
 @dataclasses.dataclass
 class Phase:
   """A phase's env and compiled entry points: init(key, sg_state, aa_state) -> Carry; run(carry) -> (carry,
@@ -157,7 +171,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   B = cfg.num_envs
 
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
-  step = jax.vmap(batched.step)
+  step = group_step(batched, None if members else mesh)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
   def init(key, sg_state, aa_state) -> Carry:
@@ -177,19 +191,23 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     sg_s, aa_s, state, ep_ret, ep_ret_aa = c
     k1, k2 = jax.random.split(key)
     obs = state.obs
-    a_sg, logp_sg, v_sg = sg.act(sg_s, obs, k1)
-    setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
+    with jax.named_scope("policy"):
+      a_sg, logp_sg, v_sg = sg.act(sg_s, obs, k1)
+      setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
     phase_now = state.info["sim"]["nav"].phase
     mask = ((phase_now == nav_lib.CRUISE) | (phase_now == nav_lib.LOITER)).astype(jnp.float32)
     if rc:
       mask = mask * state.info["alarm"]
     out = {}
     if adversarial:
-      o_aa = aa_obs(state, setpoint)
-      a_aa, logp_aa, v_aa = aa.act(aa_s, o_aa, k2)
-      nxt = step(state, jnp.concatenate([setpoint, a_aa], axis=-1))
+      with jax.named_scope("attack_agent"):
+        o_aa = aa_obs(state, setpoint)
+        a_aa, logp_aa, v_aa = aa.act(aa_s, o_aa, k2)
+      with jax.named_scope("env_step"):
+        nxt = step(state, jnp.concatenate([setpoint, a_aa], axis=-1))
     else:
-      nxt = step(state, setpoint)
+      with jax.named_scope("env_step"):
+        nxt = step(state, setpoint)
     nxt = shard(nxt)
     info = nxt.info
     done = nxt.done
@@ -199,17 +217,28 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
     final_obs = info["final_obs"]
+    with jax.named_scope("bootstrap_value"):
+      next_value = sg.value_of(sg_s, final_obs)
     out["sg"] = {"obs": obs, "action": a_sg, "logp": logp_sg, "value": v_sg, "reward": r_sg,
-                 "next_value": sg.value_of(sg_s, final_obs), "terminated": term, "done": done, "mask": mask}
+                 "next_value": next_value, "terminated": term, "done": done, "mask": mask}
     ep_ret = ep_ret + r_sg
     if adversarial:
       r_aa = env.reward(r_sg, info["aa_extra"])
-      o_aa_next = aa_obs(nxt.replace(obs=final_obs), setpoint)  # approximation: next attacker obs from final obs
+      with jax.named_scope("attack_agent"):
+        o_aa_next = aa_obs(nxt.replace(obs=final_obs), setpoint)  # approximation: next attacker obs from final obs
+        next_value_aa = aa.value_of(aa_s, o_aa_next)
       out["aa"] = {"obs": o_aa, "action": a_aa, "logp": logp_aa, "value": v_aa, "reward": r_aa,
-                   "next_value": aa.value_of(aa_s, o_aa_next), "terminated": term, "done": done,
-                   "mask": jnp.ones_like(done)}
+                   "next_value": next_value_aa, "terminated": term, "done": done, "mask": jnp.ones_like(done)}
       ep_ret_aa = ep_ret_aa + r_aa
     # ---- episode statistics (finished episodes only) ----
+    with jax.named_scope("episode_stats"):
+      stats = _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa)
+    ep_ret = ep_ret * (1.0 - done)
+    ep_ret_aa = ep_ret_aa * (1.0 - done)
+    return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa), (out, stats)
+
+  def _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa):
+    last = info["last_episode"]
     viol = jnp.any(info["final_spec_robustness"] < 0, axis=-1).astype(jnp.float32)
     crit_viol = jnp.any((info["final_spec_robustness"] < 0) & crit, axis=-1).astype(jnp.float32)
     attacked = last["attacked"]
@@ -219,10 +248,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
              "attacked": attacked * done, "attacked_complete": attacked * complete,
              "attacked_violated": attacked * viol * done, "return_sum": ep_ret * done,
              "return_aa_sum": ep_ret_aa * done, "reward_sum": r_sg, "override_steps": mask}
-    stats = jax.tree.map(lambda x: jnp.sum(x, axis=1), stats)   # [G]: per-group sums (no cross-device reduce per step)
-    ep_ret = ep_ret * (1.0 - done)
-    ep_ret_aa = ep_ret_aa * (1.0 - done)
-    return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa), (out, stats)
+    return jax.tree.map(lambda x: jnp.sum(x, axis=1), stats)   # [G]: per-group sums (no cross-device reduce per step)
 
   def advantages(tr, p):
     """GAE over [T, G, B/G], then [T, G, B/G, ...] -> [T, B, ...] for losses.update (which splits B into G)."""
@@ -231,7 +257,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     return jax.tree.map(lambda a: a.reshape((a.shape[0], B) + a.shape[3:]), dict(tr, adv=adv, target=target))
 
   def upd(agent, state, batch, key):
-    return losses.update(agent, state, batch, key, groups=G, constrain=shard)
+    with jax.named_scope("ppo_update"):
+      return losses.update(agent, state, batch, key, groups=G, constrain=shard)
 
   def one_iteration(carry: Carry, _, turn=None):
     """One iteration; turn: phase 2's learner (0 SG, 1 AA), from carry.iteration unless given (sweeps pass the
@@ -240,14 +267,17 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     init_c = (carry.sg, carry.aa, carry.env_state, carry.ep_return, carry.ep_return_aa)
     (_, _, state, ep_ret, ep_ret_aa), (tr, stats) = jax.lax.scan(
         act_step, init_c, jax.random.split(k_roll, cfg.unroll_length))
-    state = refresh_pool(state)
+    with jax.named_scope("pool_refresh"):
+      state = refresh_pool(state)
     stats = jax.tree.map(jnp.sum, stats)
-    sg_batch = advantages(tr["sg"], cfg.sg)
+    with jax.named_scope("gae"):
+      sg_batch = advantages(tr["sg"], cfg.sg)
     sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])
     zeros = lambda shape: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
     if adversarial:
       turn = (carry.iteration // cfg.alternate_iters) % 2 if turn is None else turn
-      aa_batch = advantages(tr["aa"], cfg.aa)
+      with jax.named_scope("gae"):
+        aa_batch = advantages(tr["aa"], cfg.aa)
       aa_shape = jax.eval_shape(lambda: upd(aa, carry.aa, aa_batch, k_aa)[1])
       sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: upd(sg, carry.sg, sg_batch, k_sg),
                                     lambda: (carry.sg, zeros(sg_shape)))
@@ -277,7 +307,12 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   if members:
     msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
     init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
-    run_fn = jax.jit(lambda c: msh(run_members(msh(c))), donate_argnums=0)
+    # Members never talk to each other: each device runs its own members' iterations (shard_map), which also keeps
+    # a Pallas kernel inside the env (fused_ekf) on its device.
+    spec = jax.sharding.PartitionSpec(distributed.AXIS)
+    per_device = run_members if mesh.size == 1 else jax.shard_map(run_members, mesh=mesh, in_specs=(spec,),
+                                                                   out_specs=spec, check_vma=False)
+    run_fn = jax.jit(lambda c: msh(per_device(msh(c))), donate_argnums=0)
   else:
     init_fn, run_fn = jax.jit(init), jax.jit(run, donate_argnums=0)
   return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=init_fn, run=run_fn,

@@ -165,12 +165,6 @@ def _restore_carry(mgr, step, abstract):
   return _unpack(abstract, packed)
 
 
-def _check_fused_ekf(cfg: TrainConfig, mesh) -> None:
-  """The fused EKF kernel (a Pallas custom call) has no sharding rule: XLA would gather the batch onto every device."""
-  if cfg.fused_ekf and mesh.size > 1:
-    raise ValueError(f"fused_ekf runs on one device only; this run uses {mesh.size} (pass --devices 1)")
-
-
 def load_run_config(run_dir: str) -> TrainConfig:
   path = os.path.join(run_dir, "config.json")
   if not os.path.exists(path):
@@ -196,7 +190,6 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   if num_devices is not None:
     cfg = dataclasses.replace(cfg, num_devices=num_devices)
   mesh = distributed.make_mesh(cfg.num_devices)
-  _check_fused_ekf(cfg, mesh)
   # The env-group count fixes the program (and the checkpoint's shapes): resolve it once and keep it in config.json,
   # so a resume on another device count (dividing it) continues the same run.
   cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh))
@@ -407,7 +400,6 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
   S = len(cfgs)
   avail = cfgs[0].num_devices or len(jax.devices())
   mesh = distributed.make_mesh(_math.gcd(S, avail))
-  _check_fused_ekf(cfgs[0], mesh)
   main = distributed.is_main()
   dirs = [os.path.join(out, n) for n in names]
   loggers = []

@@ -1,0 +1,180 @@
+"""Where the GPU time of one training call (or of one vmapped EKF tick) goes, from a jax.profiler trace.
+
+  python bench/gpu_profile.py --envs 16384 --phase 1 [--fused-ekf]          # one training call, by stage
+  python bench/gpu_profile.py --ekf --envs 65536 [--fused-ekf]              # one vmapped ekf_step, by kernel
+
+The function is compiled ahead of time, so every GPU kernel event of the trace (its `hlo_op`) can be mapped to the
+instruction's `op_name` in the optimised HLO, whose name stack carries the `jax.named_scope`s of ppo/iteration.py
+and envs/ (rollout: policy, env_step > sensors, ekf, detector, reconstruction, navigator, autopilot, physics,
+stl_reward, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
+a kernel's fusion root carries; XLA fuses across scope boundaries, so a fused kernel counts once, to its root's
+scope), the largest kernels, and the host's share (wall time of the call minus the GPU's busy time).
+Run it with XLA command buffers off (the script sets it unless --keep-command-buffers): kernels replayed inside a
+CUDA graph are not always attributed to their HLO instruction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import re
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+# Innermost first: a kernel is charged to the first of these found in its op_name's scope path.
+STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "reconstruction", "navigator", "stl_reward",
+          "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "episode_stats", "pool_refresh",
+          "gae", "ppo_update")
+_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name=\"([^\"]*)\"")
+
+
+def op_names(hlo_text: str) -> dict:
+  """{instruction name: op_name} of every instruction of an HLO module's text that carries metadata."""
+  out = {}
+  for line in hlo_text.splitlines():
+    m = _INSTR.match(line)
+    if m:
+      out[m.group(1)] = m.group(2)
+  return out
+
+
+def stage_of(op_name: str) -> str:
+  parts = set(re.split(r"[/()\[\]]", op_name))
+  for s in STAGES:
+    if s in parts:
+      return s
+  return "other"
+
+
+def gpu_events(trace_dir: str) -> list:
+  """[(name, hlo_op, dur us, ts us)] of the kernel events on the GPU lines of the trace's perfetto JSON."""
+  paths = glob.glob(os.path.join(trace_dir, "**", "perfetto_trace.json.gz"), recursive=True)
+  if not paths:
+    raise FileNotFoundError(f"no perfetto_trace.json.gz under {trace_dir}")
+  d = json.load(gzip.open(sorted(paths)[-1]))
+  ev = d["traceEvents"] if isinstance(d, dict) else d
+  gpu_pids = {e["pid"] for e in ev if e.get("ph") == "M" and e.get("name") == "process_name"
+              and "GPU" in str(e.get("args", {}).get("name", ""))}
+  out = []
+  for e in ev:
+    if e.get("ph") == "X" and e.get("pid") in gpu_pids:
+      args = e.get("args", {})
+      hlo = args.get("hlo_op") or args.get("long_name") or ""
+      out.append((e.get("name", ""), str(hlo), float(e.get("dur", 0.0)), float(e.get("ts", 0.0))))
+  return out
+
+
+def busy_us(events) -> float:
+  """GPU busy time (us): the union of the kernel intervals (overlapping streams counted once)."""
+  iv = sorted((ts, ts + dur) for _, _, dur, ts in events)
+  total, end = 0.0, -1e300
+  for a, b in iv:
+    if b <= end:
+      continue
+    total += b - max(a, end)
+    end = b
+  return total
+
+
+def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tuple = ()):
+  """Trace `runs` calls of an AOT-compiled function and print GPU time by stage, the largest kernels, and the
+  largest kernels of each stage in `show`."""
+  import jax
+  names = op_names(compiled.as_text())
+  jax.block_until_ready(compiled(*args))          # warm-up (allocations, autotuning caches)
+  d = tempfile.mkdtemp(prefix="gpu_profile_")
+  with jax.profiler.trace(d, create_perfetto_trace=True):
+    t = time.perf_counter()
+    for _ in range(runs):
+      out = compiled(*args)
+    jax.block_until_ready(out)
+    wall = (time.perf_counter() - t) * 1e6 / runs
+  ev = gpu_events(d)
+  total = sum(dur for _, _, dur, _ in ev) / runs
+  busy = busy_us(ev) / runs
+  by_stage = collections.Counter()
+  by_kernel = collections.Counter()
+  count = collections.Counter()
+  for name, hlo, dur, _ in ev:
+    op = names.get(hlo, "")
+    st = stage_of(op) if op else ("unattributed" if not hlo else "other")
+    by_stage[st] += dur / runs
+    key = (hlo or name[:60], st, op[-90:])
+    by_kernel[key] += dur / runs
+    count[key] += 1
+  print(f"\n### {label}\n")
+  print(f"wall {wall / 1e3:.2f} ms per call, GPU busy {busy / 1e3:.2f} ms (kernel time {total / 1e3:.2f} ms, "
+        f"{len(ev) // max(runs, 1)} kernels), host/idle {max(wall - busy, 0) / 1e3:.2f} ms\n")
+  print("| stage | GPU ms per call | share of kernel time |\n|---|---:|---:|")
+  for st, v in by_stage.most_common():
+    print(f"| {st} | {v / 1e3:.2f} | {100 * v / max(total, 1e-9):.1f} % |")
+  print("\n| largest kernels (hlo op) | stage | us per call | launches | op_name (tail) |\n|---|---|---:|---:|---|")
+  for (k, st, op), v in by_kernel.most_common(top):
+    print(f"| {k} | {st} | {v:.0f} | {count[(k, st, op)] // max(runs, 1)} | {op} |")
+  for want in show:
+    print(f"\n| largest kernels of stage {want} | us per call | launches | op_name (tail) |\n|---|---:|---:|---|")
+    for (k, st, op), v in [kv for kv in by_kernel.most_common() if kv[0][1] == want][:top]:
+      print(f"| {k} | {v:.0f} | {count[(k, st, op)] // max(runs, 1)} | {op} |")
+  return {"wall_us": wall, "busy_us": busy, "kernel_us": total, "stages_us": dict(by_stage)}
+
+
+def main(argv=None):
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  ap.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
+  ap.add_argument("--envs", type=int, default=16384)
+  ap.add_argument("--phase", type=int, default=1, choices=(1, 2))
+  ap.add_argument("--unroll", type=int, default=32)
+  ap.add_argument("--iters-per-call", type=int, default=1)
+  ap.add_argument("--fused-ekf", action="store_true")
+  ap.add_argument("--ekf", action="store_true", help="profile one vmapped ekf_step (every sensor fresh) instead")
+  ap.add_argument("--top", type=int, default=15)
+  ap.add_argument("--show", nargs="*", default=["other"], help="stages whose largest kernels are listed too")
+  ap.add_argument("--keep-command-buffers", action="store_true")
+  ap.add_argument("--json", help="write the figures here")
+  a = ap.parse_args(argv)
+  if not a.keep_command_buffers:
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="
+  import jax
+  dev = jax.devices()[0].device_kind
+  if a.ekf:
+    import envs
+    from specguard_jax import ekf as ekf_lib
+    env = envs.make(a.vehicle)
+    keys = jax.random.split(jax.random.PRNGKey(0), a.envs)
+    sim = jax.jit(jax.vmap(env.reset))(keys).info["sim"]
+    fn = jax.jit(jax.vmap(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, env.config.tick_dt, fused=a.fused_ekf)))
+    args = (sim["ekf"], sim["readings"])
+    label = (f"one vmapped ekf_step ({'fused kernel' if a.fused_ekf else 'XLA'}), {a.vehicle}, {a.envs} envs, "
+             f"{dev}")
+    res = profile(fn.lower(*args).compile(), args, label, a.top, runs=5, show=a.show)
+  else:
+    from specguard_jax.ppo import attacker, config, distributed, iteration, losses, runner
+    base = runner.default_sizes("gpu")
+    cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
+                             iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
+                             phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1).validate()
+    ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
+    k = jax.random.PRNGKey(0)
+    sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
+    aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
+    carry = ph.init(k, sg, aa)
+    t = time.perf_counter()
+    # without donation (the traced calls reuse the same carry)
+    compiled = jax.jit(ph.run.__wrapped__ if hasattr(ph.run, "__wrapped__") else ph.run).lower(carry).compile()
+    print(f"[gpu_profile] compiled in {time.perf_counter() - t:.0f} s", flush=True)
+    label = (f"one training call, phase {a.phase}, {a.vehicle}, {a.envs} envs x {a.unroll} steps x "
+             f"{a.iters_per_call} iteration(s), fused_ekf={a.fused_ekf}, {dev}")
+    res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show)
+  if a.json:
+    json.dump(dict(res, device=dev, args=vars(a), date=time.strftime("%F")), open(a.json, "w"), indent=1)
+
+
+if __name__ == "__main__":
+  main()
