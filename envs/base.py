@@ -97,9 +97,10 @@ class EnvConfig:
   recovery_estimator: str = "none"
   recovery_model: str = ""
   # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one fused
-  # Pallas/Triton kernel per tick for the whole batch (specguard_jax/ekf_kernel.py; GPU only, one device): the same
-  # filters to float32 rounding, -9 % phase-1 env step time at 65,536 envs on an H100, but each kernel variant adds
-  # ~28 s of Triton compile to every program (BENCHMARKS.md).
+  # Pallas/Triton kernel per tick for the whole batch (specguard_jax/ekf_kernel.py; GPU only; a vmapped env's batch
+  # must be on one device: the trainer shard_maps the step, ppo/iteration.group_step): the same filters to float32
+  # rounding, -9 % phase-1 env step time at 65,536 envs on an H100, but each kernel variant adds ~28 s of Triton
+  # compile to every program (BENCHMARKS.md). P is then kept in the kernel's padded layout (ekf_init(padded=True)).
   fused_ekf: bool = False
 
   def validate(self):
