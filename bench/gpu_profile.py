@@ -7,8 +7,9 @@ The function is compiled ahead of time, so every GPU kernel event of the trace (
 instruction's `op_name` in the optimised HLO, whose name stack carries the `jax.named_scope`s of ppo/iteration.py
 and envs/ (rollout: policy, env_step > sensors, ekf, detector, reconstruction, navigator, autopilot, physics,
 stl_reward, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
-a kernel's fusion root carries; XLA fuses across scope boundaries, so a fused kernel counts once, to its root's
-scope), the largest kernels, and the host's share (wall time of the call minus the GPU's busy time).
+a kernel's fusion root carries, or for kernels without metadata the scope of their fused computation or operands;
+XLA fuses across scope boundaries, so a fused kernel counts once, to its root's scope), the largest kernels, and the
+host's share (wall time of the call minus the GPU's busy time).
 Run it with XLA command buffers off (the script sets it unless --keep-command-buffers): kernels replayed inside a
 CUDA graph are not always attributed to their HLO instruction.
 """
@@ -43,6 +44,53 @@ def op_names(hlo_text: str) -> dict:
     if m:
       out[m.group(1)] = m.group(2)
   return out
+
+
+_COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
+_DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
+
+
+def attributed_op_names(hlo_text: str) -> dict:
+  """{instruction name: op_name} like `op_names`, plus a guess for instructions without metadata (the copies,
+  transposes and some fusions XLA creates): a fusion takes the op_name its fused computation's instructions carry
+  most often (by stage), anything else that of its first operand that has one (two levels deep)."""
+  direct, calls, operands, comp_ops = {}, {}, {}, {}
+  comp = None
+  for line in hlo_text.splitlines():
+    if line and not line[0].isspace():
+      m = _COMP.match(line)
+      comp = m.group(1) if m else comp
+      continue
+    m = _DEF.match(line)
+    if not m:
+      continue
+    name, rest = m.groups()
+    on = re.search(r'op_name="([^"]*)"', rest)
+    if on:
+      direct[name] = on.group(1)
+      comp_ops.setdefault(comp, []).append(on.group(1))
+    c = re.search(r"calls=%?([\w.\-]+)", rest)
+    if c:
+      calls[name] = c.group(1)
+    args = rest.split("(", 1)[1] if "(" in rest else ""
+    operands[name] = re.findall(r"%([\w.\-]+)", args.split("), ", 1)[0])
+
+  def guess(name, depth):
+    if name in direct:
+      return direct[name]
+    if name in calls and comp_ops.get(calls[name]):
+      ops = comp_ops[calls[name]]
+      by_stage = collections.Counter(stage_of(o) for o in ops)
+      best = max(by_stage, key=lambda st: (st != "other", by_stage[st]))
+      return next(o for o in ops if stage_of(o) == best)
+    if depth:
+      for o in operands.get(name, ()):
+        g = guess(o, depth - 1)
+        if g:
+          return g
+    return ""
+
+  return {name: guess(name, 2) for name in operands}
 
 
 def stage_of(op_name: str) -> str:
@@ -87,7 +135,7 @@ def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tupl
   """Trace `runs` calls of an AOT-compiled function and print GPU time by stage, the largest kernels, and the
   largest kernels of each stage in `show`."""
   import jax
-  names = op_names(compiled.as_text())
+  names = attributed_op_names(compiled.as_text())
   jax.block_until_ready(compiled(*args))          # warm-up (allocations, autotuning caches)
   d = tempfile.mkdtemp(prefix="gpu_profile_")
   with jax.profiler.trace(d, create_perfetto_trace=True):

@@ -36,6 +36,25 @@ def test_op_names_and_stages():
   assert gpu_profile.stage_of("jit(run)/ekfish/x") == "other"     # whole scope names only
 
 
+def test_kernels_without_metadata_get_the_scope_of_their_computation_or_operands():
+  hlo = HLO + """
+%fused_computation.9 (q: f32[4]) -> f32[4] {
+  %n.1 = f32[4]{0} negate(f32[4]{0} %q), metadata={op_name="jit(run)/while/body/ppo_update/neg"}
+  ROOT %n.2 = f32[4]{0} negate(f32[4]{0} %n.1)
+}
+ENTRY %other {
+  %fusion.9 = f32[4]{0} fusion(f32[4]{0} %x), kind=kLoop, calls=%fused_computation.9
+  %copy.7 = f32[4]{0} copy(f32[4]{0} %fusion.3)
+  ROOT %copy.8 = f32[4]{0} copy(f32[4]{0} %y)
+}
+"""
+  names = gpu_profile.attributed_op_names(hlo)
+  assert gpu_profile.stage_of(names["fusion.9"]) == "ppo_update"    # from its fused computation
+  assert gpu_profile.stage_of(names["copy.7"]) == "autoreset"       # from its operand
+  assert names["copy.8"] == ""                                      # nothing to go by
+  assert names["fusion.3"] == gpu_profile.op_names(hlo)["fusion.3"]  # metadata wins
+
+
 def test_busy_time_counts_overlaps_once():
   ev = [("a", "", 10.0, 0.0), ("b", "", 5.0, 5.0), ("c", "", 4.0, 20.0), ("d", "", 1.0, 21.0)]
   assert gpu_profile.busy_us(ev) == pytest.approx(14.0)   # [0, 10] u [5, 10] u [20, 24] u [21, 22]
