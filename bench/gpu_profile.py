@@ -194,7 +194,7 @@ def main(argv=None):
   if a.ekf:
     import envs
     from specguard_jax import ekf as ekf_lib
-    env = envs.make(a.vehicle)
+    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf)   # with the kernel, P in its padded layout as in the env
     keys = jax.random.split(jax.random.PRNGKey(0), a.envs)
     sim = jax.jit(jax.vmap(env.reset))(keys).info["sim"]
     fn = jax.jit(jax.vmap(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, env.config.tick_dt, fused=a.fused_ekf)))
