@@ -4,6 +4,7 @@ over the unroll).
 
   python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
   python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
+  python bench/autoreset_cost.py --envs 16384 --isolated-reset        # A/B: the auto-reset's selects kept apart
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -29,6 +30,25 @@ def timed(fn, carry, reps):
   return best * 1e3
 
 
+def isolated_autoreset(base):
+  """A subclass of AutoReset `base` whose selects of fresh pool states are kept out of any fusion with a reduction
+  over `done` (BENCHMARKS.md session 12: on an H100 the selects ran ~7x slower than memory-bound inside
+  reduction-rooted multi-output fusions): the count of entries taken comes from the prefix sum's last entry, and the
+  selects read `done` and the pool index through an optimization barrier. The same values as `base`'s."""
+  from envs.base import tree_where
+
+  class IsolatedAutoReset(base):
+    def _take_fresh(self, out, pool, cursor):
+      done = out.done > 0
+      rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+      sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
+      fresh = jax.tree.map(lambda x: x[idx], pool)
+      merged = tree_where(sel, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+      return merged, rank[-1] + 1
+
+  return IsolatedAutoReset
+
+
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
@@ -40,6 +60,9 @@ def main():
   p.add_argument("--shadow-xla", action="store_true",
                  help="with --fused-ekf --phase2: the shadow EKF keeps the XLA form (the autopilot's uses the kernel)")
   p.add_argument("--step-only", action="store_true", help="time Vmap(env).step only (no AutoReset variants)")
+  p.add_argument("--isolated-reset", action="store_true",
+                 help="also time the trainer's AutoReset step with its selects kept apart (isolated_autoreset) and "
+                      "check that it gives the same states")
   p.add_argument("--raw-mjx", action="store_true",
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
   a = p.parse_args()
@@ -77,6 +100,19 @@ def main():
     rows["AutoReset, pool refreshed per rollout"] = step + refresh
     rows["  of which the step"] = step
     rows[f"  of which refresh_pool({a.unroll}) / {a.unroll}"] = refresh
+    if a.isolated_reset:
+      iso = isolated_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
+      rows["  the step, selects kept apart"] = timed(lambda s: iso.step(s, act), bs, a.unroll)
+      # every other env past its time limit, so that the first step ends those episodes and resets them
+      ending = bs.replace(info=dict(bs.info, time=jnp.where(jnp.arange(n) % 2 == 0, 1e6, bs.info["time"])))
+      roll = lambda w: jax.jit(lambda s: jax.lax.scan(lambda s, _: (w.step(s, act), None), s, None,  # noqa: E731
+                                                      length=a.unroll)[0])(ending)
+      s_ref, s_iso = roll(per_roll), roll(iso)
+      diff = max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(s_ref), jax.tree.leaves(s_iso))
+                 if jnp.issubdtype(x.dtype, jnp.number) and x.size)
+      ended = int(jnp.sum(jax.jit(per_roll.step)(ending, act).done))
+      print(f"  (selects kept apart: largest difference from the default over {a.unroll} steps {diff:.3g}; "
+            f"{ended} of {n} episodes reset on the first step)")
     print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs (ms per env step)")
     for k, v in rows.items():
       print(f"  {k:40s} {v:8.3f}")

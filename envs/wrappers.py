@@ -64,20 +64,26 @@ class AutoReset(Wrapper):
     _, refresh = self._sizes(batch)
     inner = {k: v for k, v in info.items() if k not in _POOL_KEYS}
     out = self.env.step(state.replace(info=inner), action)
-    done = out.done > 0
-    with jax.named_scope("autoreset"):   # finished envs take consecutive pool entries
-      rank = jnp.cumsum(done.astype(jnp.int32)) - 1
-      idx = (cursor + rank) % pool_n
-      fresh = jax.tree.map(lambda x: x[idx], pool)
-      merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+    with jax.named_scope("autoreset"):
+      merged, taken = self._take_fresh(out, pool, cursor)
     new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=out.obs,
                     final_spec_robustness=out.info["spec_robustness"],
-                    pool_cursor=((cursor + jnp.sum(done)) % pool_n).astype(jnp.int32), pool_refresh=ref_ptr,
+                    pool_cursor=((cursor + taken) % pool_n).astype(jnp.int32), pool_refresh=ref_ptr,
                     reset_key=info["reset_key"], last_episode=out.info["episode"])
     merged = merged.replace(info=new_info)
     if self._refresh_in_step:
       merged = self._regenerate(merged, refresh)
     return merged
+
+  def _take_fresh(self, out: State, pool: State, cursor):
+    """(out with its finished envs replaced by consecutive pool entries from `cursor`, keeping the finished step's
+    reward, done and metrics; [] int32 number of entries taken)."""
+    done = out.done > 0
+    rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+    idx = (cursor + rank) % pool.done.shape[0]
+    fresh = jax.tree.map(lambda x: x[idx], pool)
+    merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+    return merged, jnp.sum(done)
 
   def refresh_pool(self, state: State, steps: int) -> State:
     """Regenerates the pool entries `steps` env steps of in-step refreshing would have (min(pool, refresh x steps),
