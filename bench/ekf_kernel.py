@@ -1,6 +1,6 @@
 """The EKF tick's covariance work: XLA form vs the fused Pallas/Triton kernel (specguard_jax/ekf_kernel.py), per tick.
 
-  python bench/ekf_kernel.py --envs 65536 [--blocks 4 8 16] [--warps 1 2 4]
+  python bench/ekf_kernel.py --envs 65536 [--blocks 2 4 8] [--warps 1 2 4]
 
 Prints us per tick (best of 3 runs of a jitted 20-tick loop) and the compile time of each variant; drone, every row
 fresh (the GPS tick) and GPS rows stale (the other four ticks of an env step).
@@ -34,8 +34,8 @@ def timed(fn, args, reps=20):
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("--envs", type=int, default=65536)
-  p.add_argument("--blocks", type=int, nargs="+", default=[16])
-  p.add_argument("--warps", type=int, nargs="+", default=[4])
+  p.add_argument("--blocks", type=int, nargs="+", default=[2], help="vehicles per program (the shipped kernel: 2)")
+  p.add_argument("--warps", type=int, nargs="+", default=[1], help="warps per program (the shipped kernel: 1)")
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   a = p.parse_args()
   from specguard_jax import ekf as ekf_lib

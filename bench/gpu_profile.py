@@ -33,27 +33,13 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "reconstruction", "navigator", "stl_reward",
           "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "episode_stats", "pool_refresh",
           "gae", "ppo_update")
-_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name=\"([^\"]*)\"")
-
-
-def op_names(hlo_text: str) -> dict:
-  """{instruction name: op_name} of every instruction of an HLO module's text that carries metadata."""
-  out = {}
-  for line in hlo_text.splitlines():
-    m = _INSTR.match(line)
-    if m:
-      out[m.group(1)] = m.group(2)
-  return out
-
-
 _COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
 _DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
 
 
-def attributed_op_names(hlo_text: str) -> dict:
-  """{instruction name: op_name} like `op_names`, plus a guess for instructions without metadata (the copies,
-  transposes and some fusions XLA creates): a fusion takes the op_name its fused computation's instructions carry
-  most often (by stage), anything else that of its first operand that has one (two levels deep)."""
+def _parse(hlo_text: str):
+  """One pass over an HLO module's text: ({name: op_name} of the instructions with metadata, {fusion: called
+  computation}, {name: operand names}, {computation: op_names of its instructions})."""
   direct, calls, operands, comp_ops = {}, {}, {}, {}
   comp = None
   for line in hlo_text.splitlines():
@@ -74,6 +60,19 @@ def attributed_op_names(hlo_text: str) -> dict:
       calls[name] = c.group(1)
     args = rest.split("(", 1)[1] if "(" in rest else ""
     operands[name] = re.findall(r"%([\w.\-]+)", args.split("), ", 1)[0])
+  return direct, calls, operands, comp_ops
+
+
+def op_names(hlo_text: str) -> dict:
+  """{instruction name: op_name} of every instruction of an HLO module's text that carries metadata."""
+  return _parse(hlo_text)[0]
+
+
+def attributed_op_names(hlo_text: str) -> dict:
+  """{instruction name: op_name} like `op_names`, plus a guess for instructions without metadata (the copies,
+  transposes and some fusions XLA creates): a fusion takes the op_name its fused computation's instructions carry
+  most often (by stage), anything else that of its first operand that has one (two levels deep)."""
+  direct, calls, operands, comp_ops = _parse(hlo_text)
 
   def guess(name, depth):
     if name in direct:

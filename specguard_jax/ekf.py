@@ -247,8 +247,9 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings, padded: bool = False) -> 
   z = jnp.zeros((), jnp.float32)
   zc = jnp.zeros((N_CHANNELS,), jnp.float32)
   return EKFState(pos=pos, vel=readings.gps_vel, quat=quat, gyro_bias=jnp.zeros(3), accel_bias=jnp.zeros(3),
-                  P=jnp.diag(jnp.pad(sig ** 2, (0, N_PAD - N_ERR if padded else 0))), gps_pos_age=z, gps_vel_age=z, hgt_age=z, innov=zc, test_ratio=zc,
-                  accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc, reset=z, n_resets=z, time=z)
+                  P=jnp.diag(jnp.pad(sig ** 2, (0, N_PAD - N_ERR if padded else 0))), gps_pos_age=z, gps_vel_age=z,
+                  hgt_age=z, innov=zc, test_ratio=zc, accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc,
+                  reset=z, n_resets=z, time=z)
 
 
 def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
@@ -518,7 +519,7 @@ def reset_block(P, idx, var, do):
   n = P.shape[-1]
   mask = jnp.zeros(n, bool).at[jnp.asarray(idx)].set(True) & do
   P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
-  return P + np.eye(n, dtype=np.float32) * jnp.where(mask, var, 0.0)[None, :]
+  return P + _clamps(n)[2] * jnp.where(mask, var, 0.0)[None, :]
 
 
 def _noise_and_gates(cfg: EKFConfig):
