@@ -5,6 +5,7 @@ over the unroll).
   python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
   python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
   python bench/autoreset_cost.py --envs 16384 --isolated-reset        # A/B: the auto-reset's selects kept apart
+  python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -49,6 +50,30 @@ def isolated_autoreset(base):
   return IsolatedAutoReset
 
 
+def sparse_autoreset(base, frac: int = 16):
+  """A subclass of AutoReset `base` that, when at most B / frac envs finished (the usual case: episodes last tens to
+  hundreds of steps), writes the fresh pool states into the finished envs only (a scatter of B / frac rows per state
+  leaf) instead of selecting between two whole batches; more finished envs take `base`'s select (a lax.cond on the
+  count). The same values as `base`'s."""
+  class SparseAutoReset(base):
+    def _take_fresh(self, out, pool, cursor):
+      done = out.done > 0
+      b, pool_n = done.shape[0], pool.done.shape[0]
+      k = max(1, b // frac)
+      count = jnp.sum(done.astype(jnp.int32))
+
+      def sparse(out):
+        env_idx = jnp.nonzero(done, size=k, fill_value=b)[0]          # finished envs in order, then out of range
+        fresh = jax.tree.map(lambda x: x[(cursor + jnp.arange(k)) % pool_n], pool)
+        merged = jax.tree.map(lambda o, f: o.at[env_idx].set(f, mode="drop"), out, fresh)
+        return merged.replace(reward=out.reward, done=out.done, metrics=out.metrics)
+
+      merged = jax.lax.cond(count <= k, sparse, lambda o: base._take_fresh(self, o, pool, cursor)[0], out)
+      return merged, count
+
+  return SparseAutoReset
+
+
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
@@ -63,6 +88,13 @@ def main():
   p.add_argument("--isolated-reset", action="store_true",
                  help="also time the trainer's AutoReset step with its selects kept apart (isolated_autoreset) and "
                       "check that it gives the same states")
+  p.add_argument("--sparse-reset", action="store_true",
+                 help="also time the trainer's AutoReset step writing only the finished envs (sparse_autoreset) and "
+                      "check that it gives the same states")
+  p.add_argument("--no-check", action="store_true",
+                 help="with --isolated-reset / --sparse-reset: time only, skip the same-states check (4 compiles each)")
+  p.add_argument("--trainer-only", action="store_true",
+                 help="skip the per-step pool refresh and refresh_pool timings (the trainer's step and variants only)")
   p.add_argument("--raw-mjx", action="store_true",
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
   a = p.parse_args()
@@ -90,32 +122,41 @@ def main():
     if a.step_only:
       print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step {plain:.3f} ms")
       continue
-    rows = {"Vmap(env).step (no reset)": plain}
+    dev = jax.devices()[0].device_kind
+    print(f"{dev}, {a.vehicle} {label}, {n} envs (ms per env step)")
+    row = lambda k, v: print(f"  {k:40s} {v:8.3f}", flush=True)   # noqa: E731
+    row("Vmap(env).step (no reset)", plain)
     per_step = AutoReset(VmapWrapper(env))
     bs = jax.jit(per_step.reset)(keys)
-    rows["AutoReset, pool refreshed per step"] = timed(lambda s: per_step.step(s, act), bs, a.unroll)
     per_roll = AutoReset(VmapWrapper(env), refresh_in_step=False)
+    if not a.trainer_only:
+      row("AutoReset, pool refreshed per step", timed(lambda s: per_step.step(s, act), bs, a.unroll))
     step = timed(lambda s: per_roll.step(s, act), bs, a.unroll)
-    refresh = timed(lambda s: per_roll.refresh_pool(s, a.unroll), bs, 4) / a.unroll
-    rows["AutoReset, pool refreshed per rollout"] = step + refresh
-    rows["  of which the step"] = step
-    rows[f"  of which refresh_pool({a.unroll}) / {a.unroll}"] = refresh
+    if not a.trainer_only:
+      refresh = timed(lambda s: per_roll.refresh_pool(s, a.unroll), bs, 4) / a.unroll
+      row("AutoReset, pool refreshed per rollout", step + refresh)
+      row(f"  of which refresh_pool({a.unroll}) / {a.unroll}", refresh)
+    row("  the step (the trainer's)", step)
+    variants = {}
     if a.isolated_reset:
-      iso = isolated_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
-      rows["  the step, selects kept apart"] = timed(lambda s: iso.step(s, act), bs, a.unroll)
-      # every other env past its time limit, so that the first step ends those episodes and resets them
-      ending = bs.replace(info=dict(bs.info, time=jnp.where(jnp.arange(n) % 2 == 0, 1e6, bs.info["time"])))
-      roll = lambda w: jax.jit(lambda s: jax.lax.scan(lambda s, _: (w.step(s, act), None), s, None,  # noqa: E731
-                                                      length=a.unroll)[0])(ending)
-      s_ref, s_iso = roll(per_roll), roll(iso)
-      diff = max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(s_ref), jax.tree.leaves(s_iso))
-                 if jnp.issubdtype(x.dtype, jnp.number) and x.size)
-      ended = int(jnp.sum(jax.jit(per_roll.step)(ending, act).done))
-      print(f"  (selects kept apart: largest difference from the default over {a.unroll} steps {diff:.3g}; "
-            f"{ended} of {n} episodes reset on the first step)")
-    print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs (ms per env step)")
-    for k, v in rows.items():
-      print(f"  {k:40s} {v:8.3f}")
+      variants["selects kept apart"] = isolated_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
+    if a.sparse_reset:
+      variants["finished envs only"] = sparse_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
+    # every other (every 64th) env past its time limit, so that the first step ends those episodes and resets them
+    ending = lambda every: bs.replace(info=dict(bs.info, time=jnp.where(jnp.arange(n) % every == 0, 1e6,  # noqa
+                                                                        bs.info["time"])))
+    roll = lambda w, s0: jax.jit(lambda s: jax.lax.scan(lambda s, _: (w.step(s, act), None), s, None,  # noqa: E731
+                                                        length=a.unroll)[0])(s0)
+    for name, w in variants.items():
+      row(f"  the step, {name}", timed(lambda s: w.step(s, act), bs, a.unroll))   # noqa: B023
+      if a.no_check:
+        continue
+      for what, s0 in (("half of the envs", ending(2)), ("1 in 64 envs", ending(64))):
+        s_ref, s_var = roll(per_roll, s0), roll(w, s0)
+        diff = max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(s_ref), jax.tree.leaves(s_var))
+                   if jnp.issubdtype(x.dtype, jnp.number) and x.size)
+        print(f"  ({name}: largest difference from the default over {a.unroll} steps, {what} ending on the first "
+              f"step: {diff:.3g})")
 
 
 if __name__ == "__main__":

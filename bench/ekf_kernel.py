@@ -48,16 +48,16 @@ def main():
   dt = 0.02
   print(f"{jax.devices()[0].device_kind}, {a.vehicle}, {a.envs} envs: us per tick (compile s)")
   for stale in [(), ("gps",)]:
-    xla = jax.vmap(lambda P, A, B, H, innov, en: ekf_lib._cov_tick(
-        cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, stale, unrolled=True))
+    xla = jax.vmap(lambda P, A, B, H, innov, en, due: ekf_lib._cov_tick(
+        cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, due, stale, unrolled=True))
     t, c = timed(xla, args)
     print(f"  stale={stale!s:10s} XLA                      {t:9.1f} us  ({c:.1f} s)", flush=True)
     spec = ekf_lib._cov_spec(cfg, dt, stale)
     for blk in a.blocks:
       for w in a.warps:
-        def fused(P, A, B, H, innov, en):
+        def fused(P, A, B, H, innov, en, due):
           ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
-          return ekf_kernel.cov_tick(spec, P, ab, H, innov, en, num_warps=w, block=blk)
+          return ekf_kernel.cov_tick(spec, P, ab, H, innov, en, due, num_warps=w, block=blk)
         try:
           t, c = timed(fused, args)
           print(f"  stale={stale!s:10s} kernel block {blk:3d} warps {w}  {t:9.1f} us  ({c:.1f} s)", flush=True)

@@ -2,11 +2,13 @@
 
   python bench/gpu_profile.py --envs 16384 --phase 1 [--fused-ekf]          # one training call, by stage
   python bench/gpu_profile.py --ekf --envs 65536 [--fused-ekf]              # one vmapped ekf_step, by kernel
+  python bench/gpu_profile.py --env-step --envs 65536 [--fused-ekf] [--phase 2]   # vmapped env steps, by stage
+  python bench/gpu_profile.py --env-step --raw-mjx --envs 65536             # the same steps' raw MJX physics
 
 The function is compiled ahead of time, so every GPU kernel event of the trace (its `hlo_op`) can be mapped to the
 instruction's `op_name` in the optimised HLO, whose name stack carries the `jax.named_scope`s of ppo/iteration.py
 and envs/ (rollout: policy, env_step > sensors, ekf, detector, reconstruction, navigator, autopilot, physics,
-stl_reward, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
+stl_reward, collision, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
 a kernel's fusion root carries, or for kernels without metadata the scope of their fused computation or operands;
 XLA fuses across scope boundaries, so a fused kernel counts once, to its root's scope), the largest kernels, and the
 host's share (wall time of the call minus the GPU's busy time).
@@ -31,8 +33,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Innermost first: a kernel is charged to the first of these found in its op_name's scope path.
 STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "reconstruction", "navigator", "stl_reward",
-          "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "episode_stats", "pool_refresh",
-          "gae", "ppo_update")
+          "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "episode_stats",
+          "pool_refresh", "gae", "ppo_update")
 _COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
 _DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
 
@@ -181,6 +183,11 @@ def main(argv=None):
   ap.add_argument("--iters-per-call", type=int, default=1)
   ap.add_argument("--fused-ekf", action="store_true")
   ap.add_argument("--ekf", action="store_true", help="profile one vmapped ekf_step (every sensor fresh) instead")
+  ap.add_argument("--env-step", action="store_true",
+                  help="profile --steps vmapped env steps (zero action, no auto-reset) instead of a training call")
+  ap.add_argument("--raw-mjx", action="store_true",
+                  help="with --env-step: only the physics, mjx.step x ticks_per_step per env step (same model, batch)")
+  ap.add_argument("--steps", type=int, default=4, help="env steps per profiled call (--env-step)")
   ap.add_argument("--top", type=int, default=15)
   ap.add_argument("--show", nargs="*", default=["other"], help="stages whose largest kernels are listed too")
   ap.add_argument("--keep-command-buffers", action="store_true")
@@ -201,6 +208,26 @@ def main(argv=None):
     label = (f"one vmapped ekf_step ({'fused kernel' if a.fused_ekf else 'XLA'}), {a.vehicle}, {a.envs} envs, "
              f"{dev}")
     res = profile(fn.lower(*args).compile(), args, label, a.top, runs=5, show=a.show)
+  elif a.env_step:
+    import jax.numpy as jnp
+
+    import envs
+    phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase == 2 else {}
+    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+    st = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), a.envs))
+    act = jnp.zeros((a.envs, env.action_size))
+    if a.raw_mjx:
+      from mujoco import mjx
+      ticks = env.config.ticks_per_step
+      phys = jax.vmap(lambda d: mjx.step(env.mjx_model, d))
+      one = lambda d: jax.lax.fori_loop(0, ticks, lambda _, d: phys(d), d)   # noqa: E731
+      args, what = (st.pipeline_state,), f"raw MJX ({ticks} x mjx.step per env step)"
+    else:
+      one = lambda s: jax.vmap(env.step)(s, act)   # noqa: E731
+      args, what = (st,), f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}"
+    fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
+    label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
+    res = profile(fn.lower(*args).compile(), args, label, a.top, runs=2, show=a.show)
   else:
     from specguard_jax.ppo import attacker, config, distributed, iteration, losses, runner
     base = runner.default_sizes("gpu")

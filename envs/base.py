@@ -285,15 +285,19 @@ class RAVEnv(Env):
     attack = info["attack"]
 
     def tick(carry, xs):
-      data, sim, min_obs = carry
+      data, sim = carry
       key, j = xs
       data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack, phase=j)
-      d_obs = worlds_lib.obstacle_sdf(world, self._query_pos(sim["truth"].pos))
-      return (data, sim, jnp.minimum(min_obs, d_obs)), None
+      return (data, sim), sim["truth"].pos
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
     ticks = jnp.arange(self.config.ticks_per_step, dtype=jnp.int32)   # unbatched under vmap: a real lax.cond below
-    (data, sim, min_obs), _ = jax.lax.scan(tick, (state.pipeline_state, sim0, jnp.full((), 1e3)), (keys, ticks))
+    (data, sim), tick_pos = jax.lax.scan(tick, (state.pipeline_state, sim0), (keys, ticks))
+    # Collision: the obstacle distance at every tick's true position [ticks_per_step, 3], after the tick loop (one pass
+    # over the world's obstacles for all ticks instead of one per tick, which had cost ~5 % of a step on the GPU).
+    with jax.named_scope("collision"):
+      d_obs = jax.vmap(lambda p: worlds_lib.obstacle_sdf(world, self._query_pos(p)))(tick_pos)
+      min_obs = jnp.minimum(jnp.min(d_obs), 1e3)
 
     truth, nav = sim["truth"], sim["nav"]
     signals = self._signals(world, mission, truth, nav)

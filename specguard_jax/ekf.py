@@ -467,15 +467,51 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   return _inject(cfg, s.replace(P=_layout_like(P, s.P)), dx), innov, ratio, accept
 
 
-def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, stale: tuple = (), unrolled: bool | None = None):
-  """The tick's covariance work in XLA: prediction of P (`_predict_cov`), gates, sequential fusion (`_rows_*`).
-  Returns (P [15, 15], dx [15], test ratio [13], accept [13] bool). `ekf_kernel.cov_tick` is the same as one GPU
+# Timeout resets (EKF2: reset to the measurement after reset_timeout of rejected fusion), one per block of the error
+# state: (its columns, the observation rows whose acceptance counts as fused, whether all or any of them must be
+# accepted). A block is reset on a tick where it is due (its sensor has a fresh sample and its age would pass the
+# timeout) and its rows were not accepted; its rows and columns of P are cleared and its variance set to
+# `_reset_variances`.
+_RESETS = (((0, 1), (0, 1), "all"),        # horizontal position: GPS x, y
+           ((3, 4, 5), (3, 4, 5), "all"),  # velocity: GPS velocity
+           ((2,), (2, 6), "any"))          # height: GPS height or baro
+
+
+def _reset_variances(cfg: EKFConfig) -> tuple:
+  """Variance each `_RESETS` block is reset to (its measurement's noise variance)."""
+  return (float(cfg.gps_pos_noise_h) ** 2, float(cfg.gps_vel_noise) ** 2, float(cfg.baro_noise) ** 2)
+
+
+def _blocks_fused(accept):
+  """[3] bool: whether each `_RESETS` block's measurement counts as fused this tick, from accept [13] bool."""
+  return jnp.stack([jnp.all(accept[jnp.asarray(rows)]) if how == "all" else jnp.any(accept[jnp.asarray(rows)])
+                    for _, rows, how in _RESETS])
+
+
+def _resets(accept, due):
+  """[3] bool: which `_RESETS` blocks are reset this tick, from accept [13] bool and due [3] bool."""
+  return due & ~_blocks_fused(accept)
+
+
+def _reset_and_condition(cfg: EKFConfig, P, accept, due):
+  """P [n, n] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
+  (`_condition` without symmetrisation: P is exactly symmetric here)."""
+  for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
+    P = reset_block(P, list(cols), var, do)
+  return _condition(P, symmetrise=False)
+
+
+def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
+              unrolled: bool | None = None):
+  """The tick's covariance work in XLA: prediction of P (`_predict_cov`), gates, sequential fusion (`_rows_*`), the
+  timeout resets of the blocks that are due ([3] bool, order `_RESETS`) and the closing clean-up.
+  Returns (P in its layout, dx [15], test ratio [13], accept [13] bool). `ekf_kernel.cov_tick` is the same as one GPU
   kernel for a batch."""
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
   P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, unpadded(P), A, B, dt), H, innov, R, gate, enable, stale)
-  return _layout_like(P_new, P), dx, ratio, accept
+  return _layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
 
 
 def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
@@ -488,10 +524,12 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
     used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
+    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT,
+    resets=tuple((cols, rows, how, var) for (cols, rows, how), var in zip(_RESETS, _reset_variances(cfg))))
 
 
-def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale: tuple, interpret: bool = False):
+def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple,
+                    interpret: bool = False):
   """`_cov_tick` for one vehicle whose vmap runs `ekf_kernel.cov_tick` (one fused kernel for the whole batch)."""
   from specguard_jax import ekf_kernel
   spec = _cov_spec(cfg, dt, stale)
@@ -499,19 +537,19 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, stale:
   gate = jnp.asarray(spec.gate, jnp.float32)
 
   @jax.custom_batching.custom_vmap
-  def tick(P, A, B, H, innov, enable):
-    return _cov_tick(cfg, P, A, B, dt, H, innov, R, gate, enable, stale, unrolled=True)
+  def tick(P, A, B, H, innov, enable, due):
+    return _cov_tick(cfg, P, A, B, dt, H, innov, R, gate, enable, due, stale, unrolled=True)
 
   @tick.def_vmap
-  def _(axis_size, in_batched, P, A, B, H, innov, enable):
+  def _(axis_size, in_batched, P, A, B, H, innov, enable, due):
     args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            for x, b in zip((P, A, B, H, innov, enable), in_batched)]
-    P, A, B, H, innov, enable = args
+            for x, b in zip((P, A, B, H, innov, enable, due), in_batched)]
+    P, A, B, H, innov, enable, due = args
     ab = jnp.concatenate([A.reshape(axis_size, 9), B.reshape(axis_size, 9)], axis=1)
-    out = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
+    out = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, due, interpret=interpret)
     return out, (True, True, True, True)
 
-  return tick(P, A, B, H, innov, enable)
+  return tick(P, A, B, H, innov, enable, due)
 
 
 def reset_block(P, idx, var, do):
@@ -573,11 +611,14 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
   z, noise, gate = _measurement_rows(cfg, readings)
   innov, H = _innovations(cfg, s, z)
+  # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
+  ages = jnp.stack([state.gps_pos_age, state.gps_vel_age, state.hgt_age]) + dt
+  due = jnp.stack([gps, gps, baro]) & (ages > cfg.reset_timeout)
   if fused:
-    P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, tuple(stale),
+    P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale),
                                            interpret=fused == "interpret")
   else:
-    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, tuple(stale))
+    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due, tuple(stale))
   s = _inject(cfg, s.replace(P=P), dx)
 
   # per-channel records (held while a channel is not fresh)
@@ -586,27 +627,16 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   rec_ratio = jnp.where(fc, ratio[:N_CHANNELS], state.test_ratio)
   rec_acc = jnp.where(fc, accept[:N_CHANNELS].astype(f32), state.accepted)
 
-  # timeout bookkeeping and resets (EKF2: reset to the measurement after reset_timeout of rejected fusion)
-  hpos_ok = accept[0] & accept[1]
-  vel_ok = accept[3] & accept[4] & accept[5]
-  hgt_ok = accept[2] | accept[6]
-  gps_pos_age = jnp.where(hpos_ok, 0.0, state.gps_pos_age + dt)
-  gps_vel_age = jnp.where(vel_ok, 0.0, state.gps_vel_age + dt)
-  hgt_age = jnp.where(hgt_ok, 0.0, state.hgt_age + dt)
-  reset_pos = gps & (gps_pos_age > cfg.reset_timeout)
-  reset_vel = gps & (gps_vel_age > cfg.reset_timeout)
-  reset_hgt = baro & (hgt_age > cfg.reset_timeout)
+  # timeout bookkeeping and the nominal state's side of the resets (P's side was done in the cov tick)
+  reset_pos, reset_vel, reset_hgt = _resets(accept, due)
+  gps_pos_age, gps_vel_age, hgt_age = jnp.where(_blocks_fused(accept), 0.0, ages)
   pos = jnp.where(reset_pos, s.pos.at[:2].set(readings.gps_pos[:2]), s.pos)
   pos = jnp.where(reset_hgt, pos.at[2].set(readings.baro_alt), pos)
   vel = jnp.where(reset_vel, readings.gps_vel, s.vel)
-  P = reset_block(s.P, [0, 1], cfg.gps_pos_noise_h ** 2, reset_pos)
-  P = reset_block(P, [3, 4, 5], cfg.gps_vel_noise ** 2, reset_vel)
-  P = reset_block(P, [2], cfg.baro_noise ** 2, reset_hgt)
   any_reset = reset_pos | reset_vel | reset_hgt
 
   return s.replace(
     pos=jnp.where(jnp.isfinite(pos), pos, 0.0), vel=jnp.where(jnp.isfinite(vel), vel, 0.0),
-    P=_condition(P, symmetrise=False),
     gps_pos_age=jnp.where(reset_pos, 0.0, gps_pos_age),
     gps_vel_age=jnp.where(reset_vel, 0.0, gps_vel_age),
     hgt_age=jnp.where(reset_hgt, 0.0, hgt_age),

@@ -17,7 +17,7 @@ DT = 0.02
 
 def _batch(cfg, n, seed):
   """n random vehicles' inputs to one tick's covariance work: SPD P, transition blocks, H on its support,
-  innovations (some far outside their gates), fresh flags."""
+  innovations (some far outside their gates), fresh flags, timeout resets due."""
   rng = np.random.default_rng(seed)
   L = rng.normal(size=(n, 15, 15)).astype(np.float32) * 0.3
   P = np.einsum("bij,bkj->bik", L, L) + np.eye(15, dtype=np.float32) * 0.01
@@ -30,18 +30,19 @@ def _batch(cfg, n, seed):
   scale = np.r_[np.ones(7), 0.05, np.full(5, 0.1)].astype(np.float32)
   innov = (rng.normal(size=(n, 13)) * scale * 3).astype(np.float32)
   enable = rng.random((n, 13)) < 0.8
-  return [jnp.asarray(x) for x in (P, A, B, H, innov, enable)]
+  due = rng.random((n, 3)) < 0.5
+  return [jnp.asarray(x) for x in (P, A, B, H, innov, enable, due)]
 
 
 def _xla(cfg, stale):
   noise, gate = ekf_lib._noise_and_gates(cfg)
-  return jax.jit(jax.vmap(lambda P, A, B, H, innov, en: ekf_lib._cov_tick(
-      cfg, P, A, B, DT, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, stale, unrolled=True)))
+  return jax.jit(jax.vmap(lambda P, A, B, H, innov, en, due: ekf_lib._cov_tick(
+      cfg, P, A, B, DT, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, due, stale, unrolled=True)))
 
 
 def _fused(cfg, stale, interpret):
-  return jax.jit(jax.vmap(lambda P, A, B, H, innov, en: ekf_lib._cov_tick_fused(
-      cfg, P, A, B, DT, H, innov, en, stale, interpret=interpret)))
+  return jax.jit(jax.vmap(lambda P, A, B, H, innov, en, due: ekf_lib._cov_tick_fused(
+      cfg, P, A, B, DT, H, innov, en, due, stale, interpret=interpret)))
 
 
 def _check(ref, out):
@@ -62,37 +63,41 @@ def _check(ref, out):
 def test_kernel_equals_the_xla_tick_interpreted(vehicle, stale):
   cfg = ekf_lib.EKFConfig.drone() if vehicle == "drone" else ekf_lib.EKFConfig.rover()
   args = _batch(cfg, 37, seed=len(stale) + (vehicle == "rover"))     # 37: not a multiple of the block (padding)
-  _check(_xla(cfg, stale)(*args), _fused(cfg, stale, interpret=True)(*args))
+  ref = _xla(cfg, stale)(*args)
+  _check(ref, _fused(cfg, stale, interpret=True)(*args))
+  resets = np.asarray(jax.vmap(ekf_lib._resets)(ref[3], args[6]))
+  assert resets.any() and not resets.all()    # timeout resets are exercised (the GPS ones only when GPS is fresh)
 
 
 def test_padded_layout_of_P_goes_through_the_kernel_unchanged():
   """P kept as [16, 16] with a zero last row and column (ekf_init(padded=True)): the kernel takes and returns that
   layout, equal to the [15, 15] result with the padding still exactly zero; the XLA tick accepts it too."""
   cfg = ekf_lib.EKFConfig.drone()
-  P, A, B, H, innov, en = _batch(cfg, 21, seed=5)
+  P, A, B, H, innov, en, due = _batch(cfg, 21, seed=5)
   P16 = jnp.pad(P, ((0, 0), (0, 1), (0, 1)))
-  ref = _fused(cfg, (), interpret=True)(P, A, B, H, innov, en)
-  out = _fused(cfg, (), interpret=True)(P16, A, B, H, innov, en)
+  ref = _fused(cfg, (), interpret=True)(P, A, B, H, innov, en, due)
+  out = _fused(cfg, (), interpret=True)(P16, A, B, H, innov, en, due)
   assert out[0].shape == (21, 16, 16)
   np.testing.assert_array_equal(np.asarray(out[0][:, :15, :15]), np.asarray(ref[0]))
   assert not np.any(np.asarray(out[0][:, 15, :])) and not np.any(np.asarray(out[0][:, :, 15]))
   for x, y in zip(out[1:], ref[1:]):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  xla16 = _xla(cfg, ())(P16, A, B, H, innov, en)
-  np.testing.assert_array_equal(np.asarray(xla16[0][:, :15, :15]), np.asarray(_xla(cfg, ())(P, A, B, H, innov, en)[0]))
+  xla16 = _xla(cfg, ())(P16, A, B, H, innov, en, due)
+  np.testing.assert_array_equal(np.asarray(xla16[0][:, :15, :15]),
+                                np.asarray(_xla(cfg, ())(P, A, B, H, innov, en, due)[0]))
   assert not np.any(np.asarray(xla16[0][:, 15, :]))
 
 
 def test_kernel_keeps_nonfinite_out_and_matches_under_nested_vmap():
   cfg = ekf_lib.EKFConfig.drone()
-  P, A, B, H, innov, en = _batch(cfg, 24, seed=3)
+  P, A, B, H, innov, en, due = _batch(cfg, 24, seed=3)
   P = P.at[0, 4, 4].set(jnp.nan).at[1, 2, 7].set(jnp.inf).at[1, 7, 2].set(jnp.inf)
   innov = innov.at[2, 7].set(jnp.inf)
-  out = _fused(cfg, (), interpret=True)(P, A, B, H, innov, en)
-  _check(_xla(cfg, ())(P, A, B, H, innov, en), out)
+  out = _fused(cfg, (), interpret=True)(P, A, B, H, innov, en, due)
+  _check(_xla(cfg, ())(P, A, B, H, innov, en, due), out)
   assert all(bool(jnp.all(jnp.isfinite(x))) for x in out[:3])
   # a sweep vmaps the env a second time: the kernel call is batched by Pallas' own rule
-  args2 = [x.reshape((2, 12) + x.shape[1:]) for x in (P, A, B, H, innov, en)]
+  args2 = [x.reshape((2, 12) + x.shape[1:]) for x in (P, A, B, H, innov, en, due)]
   nested = jax.jit(jax.vmap(jax.vmap(lambda *a: ekf_lib._cov_tick_fused(cfg, *a[:3], DT, *a[3:], (), interpret=True))))
   for x, y in zip(nested(*args2), out):
     np.testing.assert_array_equal(np.asarray(x).reshape(np.asarray(y).shape), np.asarray(y))
