@@ -4,7 +4,6 @@ over the unroll).
 
   python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
   python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
-  python bench/autoreset_cost.py --envs 16384 --isolated-reset        # A/B: the auto-reset's selects kept apart
   python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
@@ -29,25 +28,6 @@ def timed(fn, carry, reps):
     jax.block_until_ready(run(carry))
     best = min(best, (time.perf_counter() - t) / reps)
   return best * 1e3
-
-
-def isolated_autoreset(base):
-  """A subclass of AutoReset `base` whose selects of fresh pool states are kept out of any fusion with a reduction
-  over `done` (BENCHMARKS.md session 12: on an H100 the selects ran ~7x slower than memory-bound inside
-  reduction-rooted multi-output fusions): the count of entries taken comes from the prefix sum's last entry, and the
-  selects read `done` and the pool index through an optimization barrier. The same values as `base`'s."""
-  from envs.base import tree_where
-
-  class IsolatedAutoReset(base):
-    def _take_fresh(self, out, pool, cursor):
-      done = out.done > 0
-      rank = jnp.cumsum(done.astype(jnp.int32)) - 1
-      sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
-      fresh = jax.tree.map(lambda x: x[idx], pool)
-      merged = tree_where(sel, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
-      return merged, rank[-1] + 1
-
-  return IsolatedAutoReset
 
 
 def sparse_autoreset(base, frac: int = 16):
@@ -85,14 +65,11 @@ def main():
   p.add_argument("--shadow-xla", action="store_true",
                  help="with --fused-ekf --phase2: the shadow EKF keeps the XLA form (the autopilot's uses the kernel)")
   p.add_argument("--step-only", action="store_true", help="time Vmap(env).step only (no AutoReset variants)")
-  p.add_argument("--isolated-reset", action="store_true",
-                 help="also time the trainer's AutoReset step with its selects kept apart (isolated_autoreset) and "
-                      "check that it gives the same states")
   p.add_argument("--sparse-reset", action="store_true",
                  help="also time the trainer's AutoReset step writing only the finished envs (sparse_autoreset) and "
                       "check that it gives the same states")
   p.add_argument("--no-check", action="store_true",
-                 help="with --isolated-reset / --sparse-reset: time only, skip the same-states check (4 compiles each)")
+                 help="with --sparse-reset: time only, skip the same-states check (4 compiles each)")
   p.add_argument("--trainer-only", action="store_true",
                  help="skip the per-step pool refresh and refresh_pool timings (the trainer's step and variants only)")
   p.add_argument("--raw-mjx", action="store_true",
@@ -138,8 +115,6 @@ def main():
       row(f"  of which refresh_pool({a.unroll}) / {a.unroll}", refresh)
     row("  the step (the trainer's)", step)
     variants = {}
-    if a.isolated_reset:
-      variants["selects kept apart"] = isolated_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
     if a.sparse_reset:
       variants["finished envs only"] = sparse_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
     # every other (every 64th) env past its time limit, so that the first step ends those episodes and resets them

@@ -57,7 +57,7 @@ def main():
       for w in a.warps:
         def fused(P, A, B, H, innov, en, due):
           ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
-          return ekf_kernel.cov_tick(spec, P, ab, H, innov, en, due, num_warps=w, block=blk)
+          return ekf_kernel.cov_tick(spec, P, ab, H, innov, en, num_warps=w, block=blk)
         try:
           t, c = timed(fused, args)
           print(f"  stale={stale!s:10s} kernel block {blk:3d} warps {w}  {t:9.1f} us  ({c:.1f} s)", flush=True)

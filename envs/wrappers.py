@@ -77,13 +77,18 @@ class AutoReset(Wrapper):
 
   def _take_fresh(self, out: State, pool: State, cursor):
     """(out with its finished envs replaced by consecutive pool entries from `cursor`, keeping the finished step's
-    reward, done and metrics; [] int32 number of entries taken)."""
+    reward, done and metrics; [] int32 number of entries taken).
+
+    The selects read `done` and the pool index through an optimization barrier and the count comes from the prefix
+    sum's last entry: otherwise XLA fused the selects of every state leaf with reductions over `done` into
+    reduction-rooted kernels that ran ~6x slower than memory-bound (H100, 16,384 envs: 0.49 -> 0.17 ms per step;
+    bench/autoreset_cost.py --isolated-reset, BENCHMARKS.md session 13)."""
     done = out.done > 0
     rank = jnp.cumsum(done.astype(jnp.int32)) - 1
-    idx = (cursor + rank) % pool.done.shape[0]
+    sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
     fresh = jax.tree.map(lambda x: x[idx], pool)
-    merged = tree_where(done, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
-    return merged, jnp.sum(done)
+    merged = tree_where(sel, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+    return merged, rank[-1] + 1
 
   def refresh_pool(self, state: State, steps: int) -> State:
     """Regenerates the pool entries `steps` env steps of in-step refreshing would have (min(pool, refresh x steps),

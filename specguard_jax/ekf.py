@@ -208,17 +208,18 @@ def _diag(P):
   return P.reshape(-1)[::P.shape[-1] + 1]
 
 
-def _condition(P, symmetrise: bool = True):
+def _condition(P, symmetrise: bool = True, diag=None):
   """Symmetrise (optional), replace non-finite entries, clamp the diagonal while keeping P PSD.
 
   One elementwise pass over P (the diagonal is read once; the scaled diagonal is d s^2, computed from it), so XLA
   fuses the whole of it into its producer and consumer. Without symmetrisation (no transpose) an exactly symmetric P
   stays exactly symmetric: the scaling multiplies entry (i, j) by the same float s_i s_j as entry (j, i).
+  diag: [n] the diagonal of P after the symmetrisation and non-finite clean-up, if known (else read from P).
   """
   if symmetrise:
     P = 0.5 * (P + P.T)
   P = jnp.where(jnp.isfinite(P), P, 0.0)
-  d = _diag(P)
+  d = _diag(P) if diag is None else diag
   var_min, var_max, eye = _clamps(P.shape[-1])
   # upper clamp: scale row/column i by sqrt(max/var) (a congruence, so PSD is kept)
   s = jnp.sqrt(jnp.minimum(1.0, var_max / jnp.maximum(d, 1e-30)))
@@ -332,15 +333,41 @@ def _observe(cfg: EKFConfig, pos, vel, r):
   return jnp.concatenate([pos, vel, pos[2:3], yaw[None], flow, vb[0:1], vb[1:3]])
 
 
-def _linearise(cfg: EKFConfig, s: EKFState):
-  """Predicted observations [13] and their Jacobian H [13, 15] w.r.t. the error state (one forward-mode pass)."""
+def _observe_err(cfg: EKFConfig, s: EKFState, dx):
+  """Predicted observation rows [13] at the nominal state perturbed by the error state dx [15] (attitude error
+  applied on the world side, R' = (I + [theta]x) R): the function `_linearise` differentiates at dx = 0."""
   r = quat_to_rot(s.quat)
+  return _observe(cfg, s.pos + dx[POS], s.vel + dx[VEL], (jnp.eye(3) + _skew(dx[ATT])) @ r)
 
-  def h(dx):
-    return _observe(cfg, s.pos + dx[POS], s.vel + dx[VEL], (jnp.eye(3) + _skew(dx[ATT])) @ r)
 
-  dx0 = jnp.zeros(N_ERR)
-  return h(dx0), jax.jacfwd(h)(dx0)
+def _linearise(cfg: EKFConfig, s: EKFState):
+  """Predicted observations [13] and their Jacobian H [13, 15] w.r.t. the error state, in closed form (the same as
+  jax.jacfwd of `_observe_err` at 0, tests/test_ekf.py; jacfwd pushed 15 tangents through the rotation products,
+  which on a GPU was the EKF's largest XLA kernel, ~96 us per tick at 65,536 vehicles).
+
+  With body velocity vb = R' v: d vb / d vel = R', d vb / d theta = R' [v]x; the heading atan2(R10, R00) has
+  d / d theta = (-R00 R20 / n, -R10 R20 / n, 1), n = R00^2 + R10^2; flow = vb[:2] / max(z, h_min)."""
+  r = quat_to_rot(s.quat)
+  pred = _observe(cfg, s.pos, s.vel, r)
+  rt = r.T
+  vb = rt @ s.vel
+  dvb_dv, dvb_dth = rt, rt @ _skew(s.vel)                         # [3, 3] each
+  n = r[0, 0] ** 2 + r[1, 0] ** 2
+  dyaw = jnp.stack([-r[0, 0] * r[2, 0] / n, -r[1, 0] * r[2, 0] / n, jnp.ones(())])
+  hgt = jnp.maximum(s.pos[2], cfg.flow_min_height)
+  # d max(z, h_min) / dz as jax differentiates it (1/2 at the tie)
+  dhgt = jnp.where(s.pos[2] > cfg.flow_min_height, 1.0, jnp.where(s.pos[2] == cfg.flow_min_height, 0.5, 0.0))
+  z3, z6 = jnp.zeros(3), jnp.zeros(6)
+  eye = jnp.eye(3)
+
+  def row(pos=z3, vel=z3, att=z3):
+    return jnp.concatenate([pos, vel, att, z6])
+
+  e2 = jnp.array([0.0, 0.0, 1.0])
+  rows = ([row(pos=eye[k]) for k in range(3)] + [row(vel=eye[k]) for k in range(3)] + [row(pos=e2), row(att=dyaw)]
+          + [row(pos=e2 * (-vb[k] / hgt ** 2 * dhgt), vel=dvb_dv[k] / hgt, att=dvb_dth[k] / hgt) for k in range(2)]
+          + [row(vel=dvb_dv[k], att=dvb_dth[k]) for k in range(3)])
+  return pred, jnp.stack(rows)
 
 
 def _innovations(cfg: EKFConfig, s: EKFState, z):
@@ -493,12 +520,23 @@ def _resets(accept, due):
   return due & ~_blocks_fused(accept)
 
 
-def _reset_and_condition(cfg: EKFConfig, P, accept, due):
+def _reset_and_condition(cfg: EKFConfig, P, accept, due, diag=None):
   """P [n, n] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
-  (`_condition` without symmetrisation: P is exactly symmetric here)."""
+  (`_condition` without symmetrisation: P is exactly symmetric here). diag: [n] P's diagonal if already at hand (the
+  kernel's output): the same result, in one elementwise pass over P that reads no strided diagonal."""
+  if diag is None:
+    for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
+      P = reset_block(P, list(cols), var, do)
+    return _condition(P, symmetrise=False)
+  n = P.shape[-1]
+  cleared, new_var = jnp.zeros(n, bool), jnp.zeros(n, P.dtype)
   for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
-    P = reset_block(P, list(cols), var, do)
-  return _condition(P, symmetrise=False)
+    block = np.isin(np.arange(n), cols)
+    cleared = cleared | (block & do)
+    new_var = jnp.where(block & do, var, new_var)
+  P = jnp.where(cleared[:, None] | cleared[None, :], 0.0, P) + _clamps(n)[2] * new_var[None, :]
+  d = jnp.where(cleared, new_var, diag)
+  return _condition(P, symmetrise=False, diag=jnp.where(jnp.isfinite(d), d, 0.0))
 
 
 def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
@@ -524,8 +562,7 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
     used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT,
-    resets=tuple((cols, rows, how, var) for (cols, rows, how), var in zip(_RESETS, _reset_variances(cfg))))
+    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
 
 
 def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple,
@@ -546,8 +583,9 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
             for x, b in zip((P, A, B, H, innov, enable, due), in_batched)]
     P, A, B, H, innov, enable, due = args
     ab = jnp.concatenate([A.reshape(axis_size, 9), B.reshape(axis_size, 9)], axis=1)
-    out = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, due, interpret=interpret)
-    return out, (True, True, True, True)
+    P, dx, ratio, accept, diag = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
+    P = jax.vmap(lambda *a: _reset_and_condition(cfg, *a))(P, accept, due, diag)
+    return (P, dx, ratio, accept), (True, True, True, True)
 
   return tick(P, A, B, H, innov, enable, due)
 

@@ -2,10 +2,10 @@
 
 What it computes, for a batch of vehicles, is `ekf._cov_tick` (the XLA form, which stays the reference and the CPU
 path): P <- F P F' + Q, the tick's symmetrisation and clamps, the predicted innovation variances S = h P h' + R, the
-grouped innovation gates, the sequential scalar fusion of the accepted rows in low-rank form
-(P - sum_i c_i u_i u_i'), P's side of the timeout resets and the closing clean-up, returning the new P, the error-state
-correction dx and the gate records. The nominal state (strapdown, linearisation, injection, the resets' new position
-and velocity) stays in XLA, where it is [B, <=13]-vector work that fuses well.
+grouped innovation gates, and the sequential scalar fusion of the accepted rows in low-rank form
+(P - sum_i c_i u_i u_i'), returning the new P and its diagonal, the error-state correction dx and the gate records. The
+nominal state (strapdown, linearisation, injection, resets) stays in XLA, where it is [B, <=13]-vector work that fuses
+well.
 
 Why a kernel: in XLA the vmapped covariance work is ~60 kernels per tick, each reading or writing [B, 15, 15] or
 [B, 15]-sized buffers (BENCHMARKS.md, session 7), so at 65,536 vehicles the EKF was ~40 % of an env step against
@@ -14,10 +14,10 @@ physics' ~35 %. Here one program owns BLOCK vehicles and keeps each one's P in r
 written once. The env keeps P in that padded layout between ticks when the kernel is on (`ekf_init(padded=True)`),
 and H comes in as its support entries only ([B, 32] instead of a padded [B, 16, 16]): at 65,536 vehicles the pad and
 slice copies around the kernel had cost ~130 us per tick against the kernel's ~270 (bench/gpu_profile.py --ekf).
-P's output is a new buffer, not aliased to its input: inside the env the input P stays live (the tick loop's carry,
-the NaN fallback's copy of the state), so an alias made XLA copy it before every call (~96 us per tick at 65,536
-vehicles, bench/gpu_profile.py --env-step); the resets and clean-up after the fusion are done here for the same reason
-(in XLA they were two more passes over P, ~77 us per tick).
+The timeout resets and the closing clean-up of P after the fusion stay in XLA (`ekf._reset_and_condition`) as one
+elementwise pass over P, which the kernel's diagonal output keeps from re-reading P with a stride: the tick loop needs
+that pass anyway, to copy the kernel's output into its carry (H100, 65,536 vehicles: done inside the kernel they
+added ~47 us to it, and XLA then copied P, ~44 us per tick; bench/gpu_profile.py --env-step, BENCHMARKS.md session 13).
 Rows and columns of the tile are taken with one-hot masked sums (Triton cannot index a register tile); F's structure
 (I + E, E's non-zero columns known statically) keeps the products to 12 outer products each way.
 
@@ -37,6 +37,7 @@ import numpy as np
 
 N = 16          # padded error-state size (15 -> 16: Triton shapes are powers of two)
 BLOCK = 2       # vehicles per program (H100, 65,536 envs, bench/ekf_kernel.py: 2 x 1 warp 428 us, 4 x 1 707 us)
+ALIAS_P = False  # write P's output over its input buffer (input_output_aliases); read at trace time
 _N_ERR = 15
 _N_ROWS = 13
 
@@ -49,9 +50,6 @@ class CovSpec:
   (sigma). used: [13] whether each row can be fused at all this tick (static). group_of_row: [13] gate group of each
   row (a group is rejected as a whole). var_min, var_max: [15] diagonal clamps. h_support: [13] tuples, the
   error-state columns each row of H can be non-zero in (only those entries of H are passed to the kernel).
-  resets: the timeout-reset blocks ((columns, rows, 'all' | 'any', variance), ...) of `ekf._RESETS`: a block that is
-  due and whose rows were not accepted (all of them / any of them) has its rows and columns of P cleared and its
-  diagonal set to the variance.
   """
 
   dt: float
@@ -63,7 +61,6 @@ class CovSpec:
   var_min: tuple
   var_max: tuple
   h_support: tuple
-  resets: tuple
 
   def h_entries(self) -> tuple:
     """((row, column), ...) of H the kernel reads: the support of every usable row, in row order."""
@@ -87,7 +84,8 @@ class CovSpec:
     return c
 
 
-def _kernel(P_ref, hd_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, ratio_ref, acc_ref, *, spec: CovSpec):
+def _kernel(P_ref, hd_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, diag_ref, dx_ref, ratio_ref, acc_ref, *,
+            spec: CovSpec):
   f32 = jnp.float32
   lane = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
   is_k = [lane == k for k in range(N)]
@@ -143,8 +141,7 @@ def _kernel(P_ref, hd_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, rat
   hPh = sum(jnp.sum(h[i] * pht[i], axis=1)[:, None] * oh[i][None, :] for i in used)
   S = hPh + c_ref[1, :][None, :]
   innov = innov_ref[...]
-  en = en_ref[...]                                  # lanes 0-12: rows with a fresh sample; 13-15: resets due
-  enable = (en > 0.5) & (lane < _N_ROWS)[None, :]
+  enable = en_ref[...] > 0.5
   g2 = c_ref[2, :][None, :]
   ratio = innov * innov / (g2 * g2 * S)
   ratio = jnp.where(jnp.isfinite(ratio), ratio, 1e6)
@@ -171,26 +168,8 @@ def _kernel(P_ref, hd_ref, ab_ref, innov_ref, en_ref, c_ref, Po_ref, dx_ref, rat
   for u, c in zip(us, cs):
     P = P - c[:, None, None] * (u[:, :, None] * u[:, None, :])
 
-  # ---- timeout resets of the blocks due whose rows were not accepted, then the closing clean-up (ekf._condition
-  # without symmetrisation: the entries (i, j) and (j, i) get the same floats, so P stays exactly symmetric)
-  cleared = jnp.zeros_like(dx)                                           # [BLOCK, 16] 1.0 on reset columns
-  reset_var = jnp.zeros_like(dx)
-  for k, (cols, rows, how, var) in enumerate(spec.resets):
-    oks = [entry(acc, r) > 0.5 for r in rows]
-    ok = functools.reduce((lambda x, y: x & y) if how == "all" else (lambda x, y: x | y), oks)
-    do = ((entry(en, _N_ROWS + k) > 0.5) & ~ok).astype(f32)[:, None]      # [BLOCK, 1]
-    mask = sum(oh[c] for c in cols)[None, :]
-    cleared = cleared + do * mask
-    reset_var = reset_var + do * (var * mask)
-  hit = cleared > 0.5
-  P = jnp.where(hit[:, :, None] | hit[:, None, :], 0.0, P) + eye * reset_var[:, None, :]
-  P = jnp.where(jnp.isfinite(P), P, 0.0)
-  d = jnp.sum(jnp.where(is_diag, P, 0.0), axis=2)
-  s = jnp.sqrt(jnp.minimum(1.0, c_ref[4, :][None, :] / jnp.maximum(d, 1e-30)))
-  lift = jnp.maximum(c_ref[3, :][None, :] - d * (s * s), 0.0)
-  P = P * (s[:, :, None] * s[:, None, :]) + eye * lift[:, None, :]
-
   Po_ref[...] = P
+  diag_ref[...] = jnp.sum(jnp.where(is_diag, P, 0.0), axis=2)
   dx_ref[...] = dx
   ratio_ref[...] = ratio
   acc_ref[...] = acc
@@ -201,7 +180,7 @@ def _pad(x, shape):
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "interpret", "num_warps", "block"))
-def cov_tick(spec: CovSpec, P, ab, H, innov, enable, due, interpret: bool = False, num_warps: int = 1,
+def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, num_warps: int = 1,
              block: int = BLOCK):
   """The tick's covariance work for a batch of B vehicles.
 
@@ -209,8 +188,8 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, due, interpret: bool = Fals
   layout `ekf.ekf_init(padded=True)` keeps it in: then P goes into and out of the kernel without a copy).
   ab: [B, 18], F's blocks A (d vel / d att, row-major) then B (-R dt). H: [B, 13, 15] observation Jacobian at the
   predicted state (only its entries on `spec.h_support` are read). innov: [B, 13] innovations. enable: [B, 13] bool,
-  rows with a fresh sample. due: [B, 3] bool, the `spec.resets` blocks due for a timeout reset. Returns (P in the layout it came in, dx [B, 15], test ratio [B, 13], accept [B, 13]
-  bool). interpret: run through Pallas' interpreter (any backend; for tests).
+  rows with a fresh sample. Returns (P in the layout it came in, dx [B, 15], test ratio [B, 13], accept [B, 13]
+  bool, P's diagonal [B, 15 or 16]). interpret: run through Pallas' interpreter (any backend; for tests).
   """
   from jax.experimental import pallas as pl
   from jax.experimental.pallas import triton as plt
@@ -224,20 +203,21 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, due, interpret: bool = Fals
   hd = _pad(jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1).astype(f32), (bp, spec.h_width()))
   ab32 = _pad(ab.astype(f32), (bp, 32))
   innov16 = _pad(innov.astype(f32), (bp, N))
-  en16 = _pad(jnp.concatenate([enable, due], axis=1).astype(f32), (bp, N))   # lanes 13-15: the resets due
+  en16 = _pad(enable.astype(f32), (bp, N))
   consts = jnp.asarray(spec.consts())
   tile = pl.BlockSpec((block, N, N), lambda i: (i, 0, 0))
   vec = pl.BlockSpec((block, N), lambda i: (i, 0))
   out = pl.pallas_call(
     functools.partial(_kernel, spec=spec),
-    out_shape=[jax.ShapeDtypeStruct((bp, N, N), f32)] + [jax.ShapeDtypeStruct((bp, N), f32)] * 3,
+    out_shape=[jax.ShapeDtypeStruct((bp, N, N), f32)] + [jax.ShapeDtypeStruct((bp, N), f32)] * 4,
     grid=(bp // block,),
     in_specs=[tile, pl.BlockSpec((block, spec.h_width()), lambda i: (i, 0)),
               pl.BlockSpec((block, 32), lambda i: (i, 0)), vec, vec, pl.BlockSpec((8, N), lambda i: (0, 0))],
-    out_specs=[tile, vec, vec, vec],
+    out_specs=[tile, vec, vec, vec, vec],
+    input_output_aliases={0: 0} if ALIAS_P else {},
     interpret=interpret,
     compiler_params=None if interpret else plt.CompilerParams(num_warps=num_warps, num_stages=1),
   )(P16, hd, ab32, innov16, en16, consts)
-  Po, dx, ratio, acc = out
+  Po, diag, dx, ratio, acc = out
   Po = Po[:nb] if padded else Po[:nb, :_N_ERR, :_N_ERR]
-  return Po, dx[:nb, :_N_ERR], ratio[:nb, :_N_ROWS], acc[:nb, :_N_ROWS] > 0.5
+  return Po, dx[:nb, :_N_ERR], ratio[:nb, :_N_ROWS], acc[:nb, :_N_ROWS] > 0.5, diag[:nb, :P.shape[-1]]
