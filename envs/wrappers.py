@@ -81,8 +81,8 @@ class AutoReset(Wrapper):
 
     The selects read `done` and the pool index through an optimization barrier and the count comes from the prefix
     sum's last entry: otherwise XLA fused the selects of every state leaf with reductions over `done` into
-    reduction-rooted kernels that ran ~6x slower than memory-bound (H100, 16,384 envs: 0.49 -> 0.17 ms per step;
-    bench/autoreset_cost.py --isolated-reset, BENCHMARKS.md session 13)."""
+    reduction-rooted kernels that ran ~6x slower than memory-bound (H100, 16,384 envs: the auto-reset's share of a
+    step 0.49 -> 0.17-0.37 ms in two calls; BENCHMARKS.md session 13)."""
     done = out.done > 0
     rank = jnp.cumsum(done.astype(jnp.int32)) - 1
     sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
