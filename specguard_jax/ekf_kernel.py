@@ -18,6 +18,7 @@ The timeout resets and the closing clean-up of P after the fusion stay in XLA (`
 elementwise pass over P, which the kernel's diagonal output keeps from re-reading P with a stride: the tick loop needs
 that pass anyway, to copy the kernel's output into its carry (H100, 65,536 vehicles: done inside the kernel they
 added ~47 us to it, and XLA then copied P, ~44 us per tick; bench/gpu_profile.py --env-step, BENCHMARKS.md session 13).
+P's output is a new buffer: aliasing it to the input made no difference to the env step there.
 Rows and columns of the tile are taken with one-hot masked sums (Triton cannot index a register tile); F's structure
 (I + E, E's non-zero columns known statically) keeps the products to 12 outer products each way.
 
@@ -37,7 +38,6 @@ import numpy as np
 
 N = 16          # padded error-state size (15 -> 16: Triton shapes are powers of two)
 BLOCK = 2       # vehicles per program (H100, 65,536 envs, bench/ekf_kernel.py: 2 x 1 warp 428 us, 4 x 1 707 us)
-ALIAS_P = False  # write P's output over its input buffer (input_output_aliases); read at trace time
 _N_ERR = 15
 _N_ROWS = 13
 
@@ -214,7 +214,6 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
     in_specs=[tile, pl.BlockSpec((block, spec.h_width()), lambda i: (i, 0)),
               pl.BlockSpec((block, 32), lambda i: (i, 0)), vec, vec, pl.BlockSpec((8, N), lambda i: (0, 0))],
     out_specs=[tile, vec, vec, vec, vec],
-    input_output_aliases={0: 0} if ALIAS_P else {},
     interpret=interpret,
     compiler_params=None if interpret else plt.CompilerParams(num_warps=num_warps, num_stages=1),
   )(P16, hd, ab32, innov16, en16, consts)
