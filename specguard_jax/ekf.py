@@ -38,6 +38,7 @@ Everything is per vehicle, jittable and vmappable; dt is passed in explicitly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -510,8 +511,11 @@ def _reset_variances(cfg: EKFConfig) -> tuple:
 
 
 def _blocks_fused(accept):
-  """[3] bool: whether each `_RESETS` block's measurement counts as fused this tick, from accept [13] bool."""
-  return jnp.stack([jnp.all(accept[jnp.asarray(rows)]) if how == "all" else jnp.any(accept[jnp.asarray(rows)])
+  """[3] bool: whether each `_RESETS` block's measurement counts as fused this tick, from accept [13] bool (static
+  slices: no gather under vmap)."""
+  both = lambda a, b: a & b     # noqa: E731
+  either = lambda a, b: a | b   # noqa: E731
+  return jnp.stack([functools.reduce(both if how == "all" else either, [accept[r] for r in rows])
                     for _, rows, how in _RESETS])
 
 
@@ -524,19 +528,17 @@ def _reset_and_condition(cfg: EKFConfig, P, accept, due, diag=None):
   """P [n, n] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
   (`_condition` without symmetrisation: P is exactly symmetric here). diag: [n] P's diagonal if already at hand (the
   kernel's output): the same result, in one elementwise pass over P that reads no strided diagonal."""
-  if diag is None:
-    for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
-      P = reset_block(P, list(cols), var, do)
-    return _condition(P, symmetrise=False)
   n = P.shape[-1]
-  cleared, new_var = jnp.zeros(n, bool), jnp.zeros(n, P.dtype)
+  cleared, new_var = jnp.zeros(n, bool), jnp.zeros(n, P.dtype)   # the blocks are disjoint: one pass does them all
   for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
     block = np.isin(np.arange(n), cols)
     cleared = cleared | (block & do)
     new_var = jnp.where(block & do, var, new_var)
   P = jnp.where(cleared[:, None] | cleared[None, :], 0.0, P) + _clamps(n)[2] * new_var[None, :]
-  d = jnp.where(cleared, new_var, diag)
-  return _condition(P, symmetrise=False, diag=jnp.where(jnp.isfinite(d), d, 0.0))
+  if diag is not None:
+    d = jnp.where(cleared, new_var, diag)
+    diag = jnp.where(jnp.isfinite(d), d, 0.0)
+  return _condition(P, symmetrise=False, diag=diag)
 
 
 def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
