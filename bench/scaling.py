@@ -3,6 +3,7 @@ quality check, a profiler trace and a per-component breakdown of one training it
 
   python bench/scaling.py --vehicle drone --envs 4096 65536 262144 --devices 1 --out /tmp/scal    # one GPU
   python bench/scaling.py --envs 16384 65536 --per-device --devices 1 2 --out /tmp/scal             # 2 GPUs
+  python bench/scaling.py --envs 16384 --per-device --devices 1 2 --fused-ekf --out /tmp/scal        # with the kernel
   python bench/scaling.py --max-envs 262144 --out /tmp/scal        # largest env count that fits (doubling to OOM)
   python bench/scaling.py --quality 20000000 --devices 1 2 --out /tmp/scal   # same steps, 1 vs 2 devices
   python bench/scaling.py --profile --breakdown --envs 65536 --out /tmp/scal
@@ -34,7 +35,7 @@ def _cfg(a, envs, devices, **kw):
   base = runner.default_sizes("gpu")
   c = config.TrainConfig(vehicle=a.vehicle, num_envs=envs, unroll_length=a.unroll, iters_per_call=a.iters_per_call,
                          phase1_steps=base["phase1_steps"], phase2_steps=base["phase2_steps"], num_devices=devices,
-                         seed=a.seed, env_groups=kw.pop("env_groups", 0), **kw)
+                         seed=a.seed, env_groups=kw.pop("env_groups", 0), fused_ekf=a.fused_ekf, **kw)
   if a.smoke:
     tiny = config.PPOConfig(num_minibatches=2, update_epochs=1)
     c = dataclasses.replace(c, hidden=(32, 32), sg=tiny, aa=tiny, worlds=("suburban_residential",))
@@ -225,6 +226,7 @@ def main(argv=None):
   ap.add_argument("--iters-per-call", type=int, default=2)
   ap.add_argument("--calls", type=int, default=3, help="timed calls per measurement (after the compile call)")
   ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel (train.py's flag)")
   ap.add_argument("--no-throughput", action="store_true")
   ap.add_argument("--max-envs", type=int, metavar="START", help="double the env count from START until OOM")
   ap.add_argument("--max-envs-limit", type=int, default=1 << 22)
