@@ -303,12 +303,14 @@ KERNEL = textwrap.dedent("""
   mesh = distributed.make_mesh(2)
   roll = lambda step: jax.jit(lambda s: jax.lax.scan(lambda s, _: (step(s, act), None), s, None, length=3)[0])
   one = roll(iteration.group_step(batched, None))(state0)
-  sharded = iteration.group_step(batched, mesh)
+  sharded = iteration.group_step(batched, mesh, per_device=True)
   s2 = jax.device_put(state0, NamedSharding(mesh, PartitionSpec(distributed.AXIS)))
   two = roll(sharded)(s2)
   P1, P2 = one.info["sim"]["ekf"].P, two.info["sim"]["ekf"].P
   jaxpr = str(jax.make_jaxpr(sharded)(state0, act))
+  plain = str(jax.make_jaxpr(iteration.group_step(batched, mesh))(state0, act))   # not per_device: SPMD's vmap
   res = {"kernel_in_step": "pallas_call" in jaxpr, "shard_map": "shard_map" in jaxpr,
+         "plain_shard_map": "shard_map" in plain,
          "P_shape": list(P2.shape), "obs_shards": [list(x.data.shape) for x in two.obs.addressable_shards],
          "max_obs_diff": float(jnp.max(jnp.abs(one.obs - two.obs))), "max_P_diff": float(jnp.max(jnp.abs(P1 - P2))),
          "moved": float(jnp.max(jnp.abs(one.obs - state0.obs)))}
@@ -319,6 +321,7 @@ KERNEL = textwrap.dedent("""
 def test_fused_ekf_kernel_steps_the_envs_per_device():
   r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], _env(2)), timeout=900)[0])
   assert r["kernel_in_step"] and r["shard_map"]       # the step calls the kernel, inside a per-device split
+  assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashed XLA on 2 H100s)
   assert r["P_shape"] == [2, 3, 16, 16]                # the kernel's padded layout of P, kept in the env state
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
   assert r["moved"] > 1e-3

@@ -81,15 +81,16 @@ def make_agents(cfg: TrainConfig):
   return sg, aa
 
 
-def group_step(batched, mesh=None):
+def group_step(batched, mesh=None, per_device: bool = False):
   """The env step of G auto-reset groups: (state [G, B/G, ...], action [G, B/G, n]) -> state.
 
-  On a mesh of several devices the groups axis is split explicitly (shard_map): each device steps its own groups
-  and the env is compiled once, per device, instead of being handed to XLA's SPMD partitioner. That is also what
-  lets the fused EKF kernel (a Pallas call, which has no sharding rule) run data-parallel. mesh None or of one
-  device: a plain vmap."""
+  per_device and a mesh of several devices: the groups axis is split explicitly (shard_map), each device stepping its
+  own groups. The fused EKF kernel (a Pallas call, which has no sharding rule) needs that. Otherwise a plain vmap
+  that XLA's SPMD partitioner splits along the groups' sharding: on 2 H100s with jax 0.11.2 the shard_map inside
+  the training scan makes XLA's `shardy-xla` pass segfault at compile time (BENCHMARKS.md session 14), with or
+  without the kernel, so it is used only where the kernel needs it."""
   step = jax.vmap(batched.step)
-  if mesh is None or mesh.size == 1:
+  if mesh is None or mesh.size == 1 or not per_device:
     return step
   spec = jax.sharding.PartitionSpec(distributed.AXIS)
   return jax.shard_map(step, mesh=mesh, in_specs=(spec, spec), out_specs=spec, check_vma=False)
@@ -171,7 +172,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   B = cfg.num_envs
 
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
-  step = group_step(batched, None if members else mesh)
+  step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
   def init(key, sg_state, aa_state) -> Carry:
