@@ -173,6 +173,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
   step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
+  if cfg.fused_ekf and not members and mesh is not None:
+    distributed.use_gspmd_for_shard_map(mesh)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
   def init(key, sg_state, aa_state) -> Carry:
@@ -308,11 +310,13 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   if members:
     msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
     init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
-    # Members never talk to each other: each device runs its own members' iterations (shard_map), which also keeps
-    # a Pallas kernel inside the env (fused_ekf) on its device.
+    # Members never talk to each other: XLA's SPMD partitioner splits them along the member axis. With the fused EKF
+    # kernel (a Pallas call, which has no sharding rule) each device runs its own members explicitly (shard_map).
     spec = jax.sharding.PartitionSpec(distributed.AXIS)
-    per_device = run_members if mesh.size == 1 else jax.shard_map(run_members, mesh=mesh, in_specs=(spec,),
-                                                                   out_specs=spec, check_vma=False)
+    per_device = run_members
+    if mesh.size > 1 and cfg.fused_ekf:
+      distributed.use_gspmd_for_shard_map(mesh)
+      per_device = jax.shard_map(run_members, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)
     run_fn = jax.jit(lambda c: msh(per_device(msh(c))), donate_argnums=0)
   else:
     init_fn, run_fn = jax.jit(init), jax.jit(run, donate_argnums=0)
