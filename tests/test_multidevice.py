@@ -326,3 +326,28 @@ def test_fused_ekf_kernel_steps_the_envs_per_device():
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
   assert r["moved"] > 1e-3
   assert r["max_obs_diff"] < 1e-5 and r["max_P_diff"] < 1e-6, r
+
+
+# On a host with 2 GPUs: the three training programs that a shard_map had made XLA segfault at compile time there
+# (jax 0.11.2, BENCHMARKS.md session 14) compile and run: a plain run and a 2-member sweep without the kernel, and a
+# run with the fused EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
+@pytest.mark.gpu
+def test_two_gpus_compile_and_train(tmp_path):
+  import jax
+  if len(jax.devices()) < 2:
+    pytest.skip("needs 2 GPUs")
+  base = [sys.executable, "train.py", "--devices", "2", "--envs", "2048", "--unroll", "8", "--iters-per-call", "1",
+          "--phase1-steps", "32768", "--phase2-steps", "0", "--eval-missions", "0", "--no-export", "--no-progress",
+          "--compile-cache", "off"]
+  runs = {"plain": ["--out", str(tmp_path / "plain")],
+          "sweep": ["--sweep", "seed=0,1", "--out", str(tmp_path / "sweep")],
+          "fused": ["--fused-ekf", "--out", str(tmp_path / "fused")]}
+  env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
+             PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+  procs = _start([base + extra for extra in runs.values()], env)
+  for name, (rc, _, err) in zip(runs, _wait(procs, timeout=900)):
+    assert rc == 0, f"{name}: rc={rc}\n{err[-2000:]}"
+  for name in ("plain", "fused"):
+    s = json.loads((tmp_path / name / "summary.json").read_text())
+    assert s["env_steps"] >= 32768 and s["devices"] == 2, (name, s)
+  assert (tmp_path / "sweep" / "sweep.json").exists()
