@@ -5,6 +5,7 @@ over the unroll).
   python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
   python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
   python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
+  python bench/autoreset_cost.py --envs 65536 --trainer-only --ab-nan-fallback [--fused-ekf]   # A/B: NaN fallback off
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -72,6 +73,9 @@ def main():
                  help="with --sparse-reset: time only, skip the same-states check (4 compiles each)")
   p.add_argument("--trainer-only", action="store_true",
                  help="skip the per-step pool refresh and refresh_pool timings (the trainer's step and variants only)")
+  p.add_argument("--ab-nan-fallback", action="store_true",
+                 help="also time the env without its NaN fallback (nan_fallback=False, the trainer's env: AutoReset "
+                      "replaces NaN-terminated envs): Vmap(env).step and, without --step-only, the trainer's step")
   p.add_argument("--raw-mjx", action="store_true",
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
   a = p.parse_args()
@@ -80,8 +84,11 @@ def main():
   from envs.wrappers import AutoReset
   phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
   env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+  env_nf = envs.make(a.vehicle, fused_ekf=a.fused_ekf, nan_fallback=False, **phase2) if a.ab_nan_fallback else None
   if a.shadow_xla:
     env._fused_shadow = False
+    if env_nf is not None:
+      env_nf._fused_shadow = False
   label = f"phase {2 if a.phase2 else 1}, EKF {'kernel' if a.fused_ekf else 'XLA'}" + (
       ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
   for n in a.envs:
@@ -96,6 +103,10 @@ def main():
                                               d), st.pipeline_state, a.unroll)
       print(f"{jax.devices()[0].device_kind}, {a.vehicle}, {n} envs: raw MJX per env step ({ticks} x mjx.step) "
             f"{raw:.3f} ms; Vmap(env).step ({label}) / raw MJX = {plain / raw:.2f}x")
+    if env_nf is not None:
+      plain_nf = timed(lambda s: jax.vmap(env_nf.step)(s, act), st, a.unroll)
+      print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step without the NaN fallback "
+            f"{plain_nf:.3f} ms (with it {plain:.3f} ms)", flush=True)
     if a.step_only:
       print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step {plain:.3f} ms")
       continue
@@ -117,6 +128,8 @@ def main():
     variants = {}
     if a.sparse_reset:
       variants["finished envs only"] = sparse_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
+    if env_nf is not None:   # same states after the auto-reset (a NaN-terminated env is replaced either way)
+      variants["env without the NaN fallback"] = AutoReset(VmapWrapper(env_nf), refresh_in_step=False)
     # every other (every 64th) env past its time limit, so that the first step ends those episodes and resets them
     ending = lambda every: bs.replace(info=dict(bs.info, time=jnp.where(jnp.arange(n) % every == 0, 1e6,  # noqa
                                                                         bs.info["time"])))

@@ -102,6 +102,11 @@ class EnvConfig:
   # rounding, -9 % phase-1 env step time at 65,536 envs on an H100, but each kernel variant adds ~28 s of Triton
   # compile to every program (BENCHMARKS.md). P is then kept in the kernel's padded layout (ekf_init(padded=True)).
   fused_ekf: bool = False
+  # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
+  # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every
+  # finished env's whole state with a fresh one anyway; obs, reward, signals, STL monitor and episode record are
+  # sanitised either way. Saves one select over the whole state per step.
+  nan_fallback: bool = True
 
   def validate(self):
     if self.fused_ekf and jax.default_backend() != "gpu":
@@ -300,11 +305,13 @@ class RAVEnv(Env):
       min_obs = jnp.minimum(jnp.min(d_obs), 1e3)
 
     truth, nav = sim["truth"], sim["nav"]
-    signals = self._signals(world, mission, truth, nav)
+    finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+    # NaN physics never leaves the env: the signals (STL monitor, episode record) fall back to the previous step's.
+    signals = tree_where(finite, self._signals(world, mission, truth, nav), info["signals"])
+    min_obs = jnp.where(finite, min_obs, 1e3)
     ep = dict(info["episode"])
     t = info["time"] + self.dt
     # ---- termination ----
-    finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
     nan = ~finite
     collision = (min_obs < self.radius) & finite
     crash = self._vehicle_crashed(sim, signals) & finite
@@ -332,10 +339,11 @@ class RAVEnv(Env):
         min_fence_margin=jnp.minimum(ep["min_fence_margin"], signals["fence_margin"]))
     ep = {k: v.astype(info["episode"][k].dtype) for k, v in ep.items()}
 
-    # NaN physics never leaves the env: fall back to the previous (finite) state, zero reward, episode ends.
-    data = tree_where(finite, data, state.pipeline_state)
-    sim = tree_where(finite, sim, sim0)
-    signals = tree_where(finite, signals, info["signals"])
+    # ... and neither does its state (nan_fallback: the previous finite one; else AutoReset replaces it), zero reward,
+    # episode ends.
+    if self.config.nan_fallback:
+      data = tree_where(finite, data, state.pipeline_state)
+      sim = tree_where(finite, sim, sim0)
     obs = self._observation(world, mission, sim)
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).

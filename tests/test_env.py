@@ -109,18 +109,56 @@ def test_nan_physics_never_leaks(drone_env, drone_step):
   assert float(s2.reward) == 0.0
   assert np.all(np.isfinite(np.asarray(s2.obs)))
   assert np.all(np.isfinite(np.asarray(s2.pipeline_state.qpos)))
+  # the episode record and the STL monitor stay finite too (the minimum obstacle distance had taken the NaN)
+  for x in jax.tree.leaves((s2.info["episode"], s2.info["signals"], s2.info["spec_robustness"])):
+    assert np.all(np.isfinite(np.asarray(x))), s2.info["episode"]
 
 
-def test_autoreset_starts_a_new_mission(drone_env):
+def test_nan_step_under_autoreset_without_the_fallback(drone_env, drone_autoreset):
+  """The trainer's env skips the NaN fallback (EnvConfig.nan_fallback=False, ppo/iteration.make_env): after a step
+  whose physics went NaN, AutoReset gives the same state as with the fallback (the finished env takes a fresh pool
+  entry either way), with no NaN anywhere; only the pre-reset observation differs (zeros instead of the last one)."""
+  import copy
+  env_nf = copy.copy(drone_env)
+  env_nf.config = dataclasses.replace(drone_env.config, nan_fallback=False)
+  _, reset, step = drone_autoreset
+  s = reset(jax.random.split(jax.random.PRNGKey(6), 2))
+  dr = s.info["sim"]["dr"]
+  dr = dict(dr, thrust_gain=dr["thrust_gain"].at[0].set(jnp.nan))
+  s = s.replace(info=dict(s.info, sim=dict(s.info["sim"], dr=dr)))
+  act = jnp.zeros((2, 3))
+  a = step(s, act)
+  b = jax.jit(AutoReset(VmapWrapper(env_nf), pool_size=4, refresh=2).step)(s, act)
+  assert np.asarray(b.done).tolist() == [1.0, 0.0] and np.asarray(b.metrics["nan"]).tolist() == [1.0, 0.0]
+  assert float(b.reward[0]) == 0.0
+  final_a, final_b = np.asarray(a.info["final_obs"]), np.asarray(b.info["final_obs"])
+  np.testing.assert_array_equal(final_a[1], final_b[1])
+  assert np.all(np.isfinite(final_b))
+  strip = lambda st: st.replace(info={k: v for k, v in st.info.items() if k != "final_obs"})  # noqa: E731
+  for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(strip(a)), jax.tree.leaves(strip(b))):
+    x, y = np.asarray(x), np.asarray(y)
+    np.testing.assert_array_equal(x, y, err_msg=jax.tree_util.keystr(path))
+    if np.issubdtype(y.dtype, np.floating):
+      assert not np.any(np.isnan(y)), jax.tree_util.keystr(path)
+
+
+@pytest.fixture(scope="module")
+def drone_autoreset(drone_env):
+  """(AutoReset over 2 drone envs, its jitted reset, its jitted step), compiled once for the tests below."""
   env = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2)
-  s = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(5), 2))
+  return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+def test_autoreset_starts_a_new_mission(drone_env, drone_autoreset):
+  env, reset, step = drone_autoreset
+  s = reset(jax.random.split(jax.random.PRNGKey(5), 2))
   # Push env 0 to its time limit so the next step truncates it.
   limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
   t_end = limit[0] - 0.01
   ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))  # no stall
   s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
   old_wp = np.asarray(s.info["mission"].waypoints)
-  s2 = jax.jit(env.step)(s, jnp.zeros((2, 3)))
+  s2 = step(s, jnp.zeros((2, 3)))
   assert np.asarray(s2.done).tolist() == [1.0, 0.0]
   assert float(s2.info["truncation"][0]) == 1.0
   assert float(s2.info["time"][0]) == 0.0 and float(s2.info["time"][1]) > 0.0

@@ -45,9 +45,10 @@ class Carry:
 
 
 def make_env(cfg: TrainConfig, phase: int):
-  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv)."""
+  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv). Without the NaN fallback: the trainer's
+  AutoReset replaces a NaN-terminated env's state (envs.base.EnvConfig.nan_fallback)."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                fused_ekf=cfg.fused_ekf)
+                fused_ekf=cfg.fused_ekf, nan_fallback=False)
   if phase == 1:
     return envs_lib.make(cfg.vehicle, control_mode="override", **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
