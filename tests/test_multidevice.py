@@ -301,6 +301,7 @@ KERNEL = textwrap.dedent("""
   state0 = jax.jit(jax.vmap(batched.reset))(jax.random.split(jax.random.PRNGKey(0), G * Bg).reshape(G, Bg, -1))
   act = jnp.full((G, Bg, 3), 0.3)
   mesh = distributed.make_mesh(2)
+  distributed.use_gspmd_for_shard_map(mesh)   # as iteration.make_phase does with the kernel on several devices
   roll = lambda step: jax.jit(lambda s: jax.lax.scan(lambda s, _: (step(s, act), None), s, None, length=3)[0])
   one = roll(iteration.group_step(batched, None))(state0)
   sharded = iteration.group_step(batched, mesh, per_device=True)
@@ -310,7 +311,7 @@ KERNEL = textwrap.dedent("""
   jaxpr = str(jax.make_jaxpr(sharded)(state0, act))
   plain = str(jax.make_jaxpr(iteration.group_step(batched, mesh))(state0, act))   # not per_device: SPMD's vmap
   res = {"kernel_in_step": "pallas_call" in jaxpr, "shard_map": "shard_map" in jaxpr,
-         "plain_shard_map": "shard_map" in plain,
+         "plain_shard_map": "shard_map" in plain, "shardy": bool(getattr(jax.config, "jax_use_shardy_partitioner", 0)),
          "P_shape": list(P2.shape), "obs_shards": [list(x.data.shape) for x in two.obs.addressable_shards],
          "max_obs_diff": float(jnp.max(jnp.abs(one.obs - two.obs))), "max_P_diff": float(jnp.max(jnp.abs(P1 - P2))),
          "moved": float(jnp.max(jnp.abs(one.obs - state0.obs)))}
@@ -322,6 +323,7 @@ def test_fused_ekf_kernel_steps_the_envs_per_device():
   r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], _env(2)), timeout=900)[0])
   assert r["kernel_in_step"] and r["shard_map"]       # the step calls the kernel, inside a per-device split
   assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashed XLA on 2 H100s)
+  assert not r["shardy"]                               # the kernel's shard_map compiled by GSPMD, as on the GPUs
   assert r["P_shape"] == [2, 3, 16, 16]                # the kernel's padded layout of P, kept in the env state
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
   assert r["moved"] > 1e-3
