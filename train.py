@@ -58,6 +58,9 @@ def parse_args(argv=None):
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
   ap.add_argument("--fused-ekf", action="store_true", default=None,
                   help="the EKF's covariance work as one fused GPU kernel (faster steps, longer compiles)")
+  ap.add_argument("--matmul-precision", choices=("default", "bf16"),
+                  help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
+                       "with f32 accumulation (env, evaluation and ONNX export stay f32)")
   ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
   ap.add_argument("--env-groups", type=int,
                   help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
@@ -86,7 +89,8 @@ def build_config(a):
             "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
-            "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf}
+            "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf,
+            "matmul_precision": a.matmul_precision}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:
     over["phase1_steps"] = a.steps // 2

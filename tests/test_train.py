@@ -4,6 +4,7 @@ interrupted + resumed twin that ends bit-identical, the CLI's one-line errors, a
 
 import json
 import os
+import re
 import shutil
 
 import jax
@@ -63,6 +64,42 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
   assert jax.tree.structure(c) == jax.tree.structure(out)
   bad = [(x, y) for x, y in zip(a, b) if (x.shape, x.dtype, x.weak_type) != (y.shape, y.dtype, y.weak_type)]
   assert not bad, bad[:3]
+
+
+def _dot_precisions(cfg, phase):
+  """[(bf16 inputs?, names of the scopes it was traced in)] of every dot_general in the lowered phase program."""
+  ph = iteration.make_phase(cfg, phase)
+  k = jax.random.PRNGKey(0)
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  txt = ph.run.lower(c).as_text(debug_info=True)
+  locs = dict(re.findall(r"^(#loc\d+) = (.*)$", txt, re.M))
+
+  def names(ref, depth=0):   # a location's own names and those of the locations it refers to
+    d = locs.get(ref, "")
+    inner = re.findall(r"#loc\d+", d) if depth < 8 else []
+    return re.findall(r'loc\("([^"]*)"', d) + [n for r in inner for n in names(r, depth + 1)]
+  out = []
+  for line in txt.splitlines():
+    if "dot_general" in line:
+      ref = re.search(r"loc\((#loc\d+)\)\s*$", line)
+      out.append(("lhs_precision_type = bf16" in line, " ".join(names(ref.group(1))) if ref else ""))
+  return out
+
+
+def test_bf16_matmuls_only_in_the_agents_networks():
+  """--matmul-precision bf16 rounds the inputs of every matmul of both agents' networks (acting, bootstrap values,
+  PPO update) to bfloat16, and of nothing else: the env's physics, EKF and reconstruction stay f32."""
+  default = _dot_precisions(tiny(phase2_steps=256), 2)
+  bf16 = _dot_precisions(tiny(phase2_steps=256, matmul_precision="bf16"), 2)
+  assert len(default) == len(bf16) and not any(b for b, _ in default)
+  nets = sum("MLP" in n for _, n in default)
+  assert nets >= 30                                                  # SG + AA: acting, values, gradients
+  assert sum(b for b, _ in bf16) == nets
+  assert all("MLP" in n for b, n in bf16 if b) and not any("MLP" in n for b, n in bf16 if not b)
+  assert any("physics" in n for b, n in bf16 if not b) and any("ekf" in n for b, n in bf16 if not b)
+  with pytest.raises(ValueError, match="unknown matmul_precision 'fp8'"):
+    tiny(matmul_precision="fp8")
+  assert train_cli.build_config(train_cli.parse_args(["--matmul-precision", "bf16"])).matmul_precision == "bf16"
 
 
 def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):

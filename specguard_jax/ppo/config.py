@@ -11,6 +11,14 @@ from specguard_jax.types import SENSOR_NAMES
 
 VARIANTS = ("rc", "pc")
 VEHICLES = ("drone", "rover")
+MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
+
+
+def network_precision(name: str):
+  """Context manager under which the agents' networks are traced (TrainConfig.matmul_precision): 'default' leaves
+  JAX's default; 'bf16': bfloat16 matmul inputs, f32 accumulation and output."""
+  import contextlib
+  return contextlib.nullcontext() if name == "default" else jax.default_matmul_precision("BF16_BF16_F32")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +96,10 @@ class TrainConfig:
   fused_ekf: bool = False           # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
+  # The agents' networks in training (acting, bootstrap values, PPO update): 'default' (f32 matmuls, which XLA runs
+  # as TF32 on NVIDIA GPUs) or 'bf16' (matmul inputs rounded to bfloat16, f32 accumulation and everything else f32:
+  # jax.lax.DotAlgorithmPreset.BF16_BF16_F32). The env, the held-out evaluation and the ONNX export stay f32.
+  matmul_precision: str = "default"
 
   def validate(self):
     from envs import worlds as worlds_lib
@@ -109,6 +121,9 @@ class TrainConfig:
     bad = [s for s in self.attack_sensors if s not in SENSOR_NAMES]
     if bad or not self.attack_sensors:
       raise ValueError(f"unknown or no attack sensor(s) {bad}; choose from {', '.join(SENSOR_NAMES)}")
+    if self.matmul_precision not in MATMUL_PRECISIONS:
+      raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; choose one of "
+                       f"{', '.join(MATMUL_PRECISIONS)}")
     if self.num_devices < 0 or self.env_groups < 0:
       raise ValueError("num_devices and env_groups must be >= 0 (0 = one per device / all devices)")
     if self.env_groups and self.num_envs % self.env_groups:

@@ -30,7 +30,7 @@ from envs.wrappers import AutoReset
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
-from specguard_jax.ppo.config import PPOConfig, TrainConfig
+from specguard_jax.ppo.config import PPOConfig, TrainConfig, network_precision
 
 @struct.dataclass
 class Carry:
@@ -172,6 +172,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   rc = adversarial and cfg.variant == "rc"
   B = cfg.num_envs
 
+  nets = functools.partial(network_precision, cfg.matmul_precision)   # the agents' networks only, not the env
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
   step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
   if cfg.fused_ekf and not members and mesh is not None:
@@ -195,7 +196,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     sg_s, aa_s, state, ep_ret, ep_ret_aa = c
     k1, k2 = jax.random.split(key)
     obs = state.obs
-    with jax.named_scope("policy"):
+    with jax.named_scope("policy"), nets():
       a_sg, logp_sg, v_sg = sg.act(sg_s, obs, k1)
       setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
     phase_now = state.info["sim"]["nav"].phase
@@ -204,7 +205,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       mask = mask * state.info["alarm"]
     out = {}
     if adversarial:
-      with jax.named_scope("attack_agent"):
+      with jax.named_scope("attack_agent"), nets():
         o_aa = aa_obs(state, setpoint)
         a_aa, logp_aa, v_aa = aa.act(aa_s, o_aa, k2)
       with jax.named_scope("env_step"):
@@ -221,14 +222,14 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
     final_obs = info["final_obs"]
-    with jax.named_scope("bootstrap_value"):
+    with jax.named_scope("bootstrap_value"), nets():
       next_value = sg.value_of(sg_s, final_obs)
     out["sg"] = {"obs": obs, "action": a_sg, "logp": logp_sg, "value": v_sg, "reward": r_sg,
                  "next_value": next_value, "terminated": term, "done": done, "mask": mask}
     ep_ret = ep_ret + r_sg
     if adversarial:
       r_aa = env.reward(r_sg, info["aa_extra"])
-      with jax.named_scope("attack_agent"):
+      with jax.named_scope("attack_agent"), nets():
         o_aa_next = aa_obs(nxt.replace(obs=final_obs), setpoint)  # approximation: next attacker obs from final obs
         next_value_aa = aa.value_of(aa_s, o_aa_next)
       out["aa"] = {"obs": o_aa, "action": a_aa, "logp": logp_aa, "value": v_aa, "reward": r_aa,
@@ -261,7 +262,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     return jax.tree.map(lambda a: a.reshape((a.shape[0], B) + a.shape[3:]), dict(tr, adv=adv, target=target))
 
   def upd(agent, state, batch, key):
-    with jax.named_scope("ppo_update"):
+    with jax.named_scope("ppo_update"), nets():
       return losses.update(agent, state, batch, key, groups=G, constrain=shard)
 
   def one_iteration(carry: Carry, _, turn=None):
