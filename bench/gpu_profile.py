@@ -1,6 +1,6 @@
 """Where the GPU time of one training call (or of one vmapped EKF tick) goes, from a jax.profiler trace.
 
-  python bench/gpu_profile.py --envs 16384 --phase 1 [--fused-ekf]          # one training call, by stage
+  python bench/gpu_profile.py --envs 16384 --phase 1 [--fused-ekf] [--matmul-precision bf16]   # one training call, by stage
   python bench/gpu_profile.py --ekf --envs 65536 [--fused-ekf]              # one vmapped ekf_step, by kernel
   python bench/gpu_profile.py --env-step --envs 65536 [--fused-ekf] [--phase 2]   # vmapped env steps, by stage
   python bench/gpu_profile.py --env-step --raw-mjx --envs 65536             # the same steps' raw MJX physics
@@ -182,6 +182,8 @@ def main(argv=None):
   ap.add_argument("--unroll", type=int, default=32)
   ap.add_argument("--iters-per-call", type=int, default=1)
   ap.add_argument("--fused-ekf", action="store_true")
+  ap.add_argument("--matmul-precision", default="default", choices=("default", "bf16"),
+                  help="the agents' network matmuls (train.py's flag; training call only)")
   ap.add_argument("--ekf", action="store_true", help="profile one vmapped ekf_step (every sensor fresh) instead")
   ap.add_argument("--env-step", action="store_true",
                   help="profile --steps vmapped env steps (zero action, no auto-reset) instead of a training call")
@@ -233,7 +235,8 @@ def main(argv=None):
     base = runner.default_sizes("gpu")
     cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
                              iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
-                             phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1).validate()
+                             phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1,
+                             matmul_precision=a.matmul_precision).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
     sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
