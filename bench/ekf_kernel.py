@@ -3,7 +3,8 @@
   python bench/ekf_kernel.py --envs 65536 [--blocks 2 4 8] [--warps 1 2 4]
 
 Prints us per tick (best of 3 runs of a jitted 20-tick loop) and the compile time of each variant; drone, every row
-fresh (the GPS tick) and GPS rows stale (the other four ticks of an env step).
+fresh (the GPS tick) and GPS rows stale (the other four ticks of an env step). Both forms include the timeout resets
+and clean-up of P (in the kernel's case the XLA pass after it, as in the env).
 """
 
 import argparse
@@ -55,9 +56,10 @@ def main():
     spec = ekf_lib._cov_spec(cfg, dt, stale)
     for blk in a.blocks:
       for w in a.warps:
-        def fused(P, A, B, H, innov, en, due):
+        def fused(P, A, B, H, innov, en, due):   # the kernel, then the resets + clean-up pass the XLA tick includes
           ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
-          return ekf_kernel.cov_tick(spec, P, ab, H, innov, en, num_warps=w, block=blk)
+          P, dx, ratio, acc, diag = ekf_kernel.cov_tick(spec, P, ab, H, innov, en, num_warps=w, block=blk)
+          return jax.vmap(lambda *x: ekf_lib._reset_and_condition(cfg, *x))(P, acc, due, diag), dx, ratio, acc
         try:
           t, c = timed(fused, args)
           print(f"  stale={stale!s:10s} kernel block {blk:3d} warps {w}  {t:9.1f} us  ({c:.1f} s)", flush=True)

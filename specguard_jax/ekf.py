@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -513,9 +514,7 @@ def _reset_variances(cfg: EKFConfig) -> tuple:
 def _blocks_fused(accept):
   """[3] bool: whether each `_RESETS` block's measurement counts as fused this tick, from accept [13] bool (static
   slices: no gather under vmap)."""
-  both = lambda a, b: a & b     # noqa: E731
-  either = lambda a, b: a | b   # noqa: E731
-  return jnp.stack([functools.reduce(both if how == "all" else either, [accept[r] for r in rows])
+  return jnp.stack([functools.reduce(operator.and_ if how == "all" else operator.or_, [accept[r] for r in rows])
                     for _, rows, how in _RESETS])
 
 
