@@ -175,7 +175,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   nets = functools.partial(network_precision, cfg.matmul_precision)   # the agents' networks only, not the env
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
   step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
-  if cfg.fused_ekf and not members and mesh is not None:
+  if cfg.fused_ekf and not members:   # group_step's shard_map
     distributed.use_gspmd_for_shard_map(mesh)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
