@@ -6,6 +6,7 @@ over the unroll).
   python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
   python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
   python bench/autoreset_cost.py --envs 65536 --trainer-only --ab-nan-fallback [--fused-ekf]   # A/B: NaN fallback off
+  python bench/autoreset_cost.py --envs 65536 --step-only --ab-tick-cond [--fused-ekf]   # A/B: GPS schedule by lax.cond
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -18,11 +19,16 @@ import jax
 import jax.numpy as jnp
 
 
-def timed(fn, carry, reps):
+def timed(fn, carry, reps, first_call=None):
+  """Best of 3 ms per step of `reps` steps of fn in one jitted scan; first_call: a list the first call's s (compile
+  included) is appended to."""
   @jax.jit
   def run(c):
     return jax.lax.scan(lambda c, _: (fn(c), None), c, None, length=reps)[0]
+  t = time.perf_counter()
   jax.block_until_ready(run(carry))
+  if first_call is not None:
+    first_call.append(time.perf_counter() - t)
   best = float("inf")
   for _ in range(3):
     t = time.perf_counter()
@@ -55,6 +61,22 @@ def sparse_autoreset(base, frac: int = 16):
   return SparseAutoReset
 
 
+def with_cond_gps_schedule(env):
+  """`env` with the tick loop of sessions 9-14: one scan over the step's ticks, the GPS-free ticks' EKF variant picked
+  by a lax.cond on the (unbatched) tick index, instead of envs.base's static grouping (the same values)."""
+  p = env._gps_period
+  if p is None:
+    raise SystemExit("--ab-tick-cond: this env has no GPS schedule (CPU backend, or the GPS period does not divide "
+                     "ticks_per_step)")
+
+  def tick_loop(tick, carry, keys):
+    ticks = jnp.arange(keys.shape[0], dtype=jnp.int32)
+    return jax.lax.scan(lambda c, xs: tick(c, xs[0], (xs[1] + 1) % p == 0), carry, (keys, ticks))
+
+  env._tick_loop = tick_loop
+  return env
+
+
 def main():
   p = argparse.ArgumentParser()
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
@@ -78,6 +100,9 @@ def main():
                       "replaces NaN-terminated envs): Vmap(env).step and, without --step-only, the trainer's step")
   p.add_argument("--raw-mjx", action="store_true",
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
+  p.add_argument("--ab-tick-cond", action="store_true",
+                 help="also time Vmap(env).step with the GPS schedule picked per tick by a lax.cond (sessions 9-14) "
+                      "instead of the static grouping, and print both first-call (compile) times")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
@@ -89,13 +114,20 @@ def main():
     env._fused_shadow = False
     if env_nf is not None:
       env_nf._fused_shadow = False
+  env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)) if a.ab_tick_cond else None
   label = f"phase {2 if a.phase2 else 1}, EKF {'kernel' if a.fused_ekf else 'XLA'}" + (
       ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)
     act = jnp.zeros((n, env.action_size))
-    plain = timed(lambda s: jax.vmap(env.step)(s, act), st, a.unroll)
+    first = []
+    plain = timed(lambda s: jax.vmap(env.step)(s, act), st, a.unroll, first)
+    if env_cond is not None:
+      plain_cond = timed(lambda s: jax.vmap(env_cond.step)(s, act), st, a.unroll, first)
+      print(f"{jax.devices()[0].device_kind}, {a.vehicle} {label}, {n} envs: Vmap(env).step {plain:.3f} ms (first "
+            f"call {first[0]:.1f} s); with the GPS schedule by lax.cond {plain_cond:.3f} ms (first call "
+            f"{first[1]:.1f} s)", flush=True)
     if a.raw_mjx:
       from mujoco import mjx
       ticks = env.config.ticks_per_step

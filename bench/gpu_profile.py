@@ -190,6 +190,8 @@ def main(argv=None):
   ap.add_argument("--raw-mjx", action="store_true",
                   help="with --env-step: only the physics, mjx.step x ticks_per_step per env step (same model, batch)")
   ap.add_argument("--steps", type=int, default=4, help="env steps per profiled call (--env-step)")
+  ap.add_argument("--no-nan-fallback", action="store_true",
+                  help="--env-step: the trainer's env (EnvConfig.nan_fallback=False, as ppo/iteration.make_env)")
   ap.add_argument("--top", type=int, default=15)
   ap.add_argument("--show", nargs="*", default=["other"], help="stages whose largest kernels are listed too")
   ap.add_argument("--keep-command-buffers", action="store_true")
@@ -215,7 +217,7 @@ def main(argv=None):
 
     import envs
     phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase == 2 else {}
-    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, nan_fallback=not a.no_nan_fallback, **phase2)
     st = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), a.envs))
     act = jnp.zeros((a.envs, env.action_size))
     if a.raw_mjx:
@@ -226,7 +228,8 @@ def main(argv=None):
       args, what = (st.pipeline_state,), f"raw MJX ({ticks} x mjx.step per env step)"
     else:
       one = lambda s: jax.vmap(env.step)(s, act)   # noqa: E731
-      args, what = (st,), f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}"
+      args, what = (st,), (f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}, "
+                           f"nan_fallback={not a.no_nan_fallback}")
     fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
     label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
     res = profile(fn.lower(*args).compile(), args, label, a.top, runs=2, show=a.show)

@@ -167,8 +167,9 @@ class RAVEnv(Env):
     # Reset samples the sensors once (the EKF's initial readings), so an env step starts on sensor tick
     # 1 + n * ticks_per_step. When the GPS period divides ticks_per_step, the GPS is fresh on the same tick index j of
     # every step for every env, (1 + j) % period == 0, and the other ticks' EKF update leaves its rows out statically
-    # (ekf_step(stale=("gps",)); tests/test_env.py checks the schedule on rollouts with auto-resets). Off on the CPU,
-    # where the env is compiled for tests and smoke runs and the second EKF variant only adds compile time.
+    # (ekf_step(stale=("gps",)), `_tick_loop`; tests/test_env.py checks the schedule on rollouts with auto-resets).
+    # Off on the CPU, where the env is compiled for tests and smoke runs and the second tick variant only adds
+    # compile time.
     gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
     self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
                         and jax.default_backend() != "cpu" else None)
@@ -289,15 +290,13 @@ class RAVEnv(Env):
     override = self._override_active(sim0)
     attack = info["attack"]
 
-    def tick(carry, xs):
+    def tick(carry, key, gps_due):
       data, sim = carry
-      key, j = xs
-      data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack, phase=j)
+      data, sim = self._tick(data, sim, mission, world, override_vel, override, key, attack, gps_due=gps_due)
       return (data, sim), sim["truth"].pos
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
-    ticks = jnp.arange(self.config.ticks_per_step, dtype=jnp.int32)   # unbatched under vmap: a real lax.cond below
-    (data, sim), tick_pos = jax.lax.scan(tick, (state.pipeline_state, sim0), (keys, ticks))
+    (data, sim), tick_pos = self._tick_loop(tick, (state.pipeline_state, sim0), keys)
     # Collision: the obstacle distance at every tick's true position [ticks_per_step, 3], after the tick loop (one pass
     # over the world's obstacles for all ticks instead of one per tick, which had cost ~5 % of a step on the GPU).
     with jax.named_scope("collision"):
@@ -371,8 +370,27 @@ class RAVEnv(Env):
     return state.replace(pipeline_state=data, obs=obs, reward=reward, done=done, metrics=metrics, info=new_info)
 
   # ---------------------------------------------------------------- one autopilot tick
-  def _tick(self, data, sim, mission, world, override_vel, override, key, attack=None, phase=None):
-    """One autopilot tick. phase: [] int32 index of the tick within its env step (from `step`), or None elsewhere."""
+  def _tick_loop(self, tick, carry, keys):
+    """The env step's ticks: tick(carry, key, gps_due) -> (carry, true position [3]) over keys [T, ...] -> (carry,
+    positions [T, 3]). Without a GPS schedule (`_gps_period` None: on the CPU) a scan of full ticks. With one (period
+    p), the ticks go in groups of p: a scan of the p - 1 ticks whose EKF leaves the GPS rows out, then the tick that can
+    carry a GPS sample, each static: no lax.cond in the loop (on the GPU a cond's outputs, P included, are copied into
+    the loop's carry; BENCHMARKS.md session 15)."""
+    p = self._gps_period
+    if p is None:
+      return jax.lax.scan(lambda c, k: tick(c, k, None), carry, keys)
+
+    def group(carry, keys_g):   # keys_g [p, ...]
+      carry, pos = jax.lax.scan(lambda c, k: tick(c, k, False), carry, keys_g[:p - 1])
+      carry, last = tick(carry, keys_g[p - 1], True)
+      return carry, jnp.concatenate([pos, last[None]])
+
+    carry, pos = jax.lax.scan(group, carry, keys.reshape((-1, p) + keys.shape[1:]))
+    return carry, pos.reshape((-1, 3))
+
+  def _tick(self, data, sim, mission, world, override_vel, override, key, attack=None, gps_due=None):
+    """One autopilot tick. gps_due: whether this tick can carry a GPS sample, for every env (`_tick_loop`'s schedule;
+    a Python bool, or an unbatched traced bool), or None (any tick can: the full EKF update)."""
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
     with jax.named_scope("sensors"):
@@ -381,8 +399,6 @@ class RAVEnv(Env):
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
       sim, rd_ekf = self.recovery.pre_ekf(sim, readings)
-    # inside `step`: whether this tick index can carry a GPS sample (None elsewhere: any tick can)
-    gps_due = None if phase is None or self._gps_period is None else (phase + 1) % self._gps_period == 0
     with jax.named_scope("ekf"):
       ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
     with jax.named_scope("detector"):
@@ -420,13 +436,10 @@ class RAVEnv(Env):
     return data, dict(sim, readings=readings, ekf=ekf)
 
   def _ekf_update(self, ekf, readings, gps_due):
-    """The autopilot's EKF tick. gps_due False (unbatched: the tick index within `step`): no env can have a fresh GPS
-    sample, and the GPS rows are left out of the fusion (a lax.cond: only one branch runs). None: the full tick."""
-    step = lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt, stale=stale,
-                                          fused=self._fused_ekf)
-    if gps_due is None:
-      return step(())
-    return jax.lax.cond(gps_due, lambda: step(()), lambda: step(("gps",)))
+    """The autopilot's EKF tick. gps_due False: no env can have a fresh GPS sample, and the GPS rows are left out of
+    the fusion (ekf.on_gps_schedule). None: the full tick."""
+    return ekf_lib.on_gps_schedule(lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt,
+                                                                  stale=stale, fused=self._fused_ekf), gps_due)
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""

@@ -683,6 +683,17 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
     reset=any_reset.astype(f32), n_resets=state.n_resets + any_reset, time=state.time + dt)
 
 
+def on_gps_schedule(step, gps_due):
+  """step(stale) -> the tick's EKF state, for a tick whose GPS freshness is known for every vehicle: gps_due None (not
+  known: the full tick, step(())), a Python bool (static: step(()) or step(("gps",)), the GPS rows left out), or an
+  unbatched traced bool (a lax.cond between the two: only one branch runs)."""
+  if gps_due is None:
+    return step(())
+  if isinstance(gps_due, (bool, np.bool_)):
+    return step(()) if gps_due else step(("gps",))
+  return jax.lax.cond(gps_due, lambda: step(()), lambda: step(("gps",)))
+
+
 # ----------------------------------------------------------------------------------------------------------------------
 # accessors
 

@@ -321,9 +321,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   fused: the shadow filter's covariance work as the fused GPU kernel under vmap (ekf.ekf_step's `fused`; dt a Python
   float): the same filter to float32 rounding.
 
-  gps_due: optional [] bool, the same for every vehicle (unbatched under vmap): False on a tick where no GPS sample can
-  be fresh (envs/base.py's schedule); the shadow filter then leaves the GPS rows out (ekf_step(stale=("gps",)), a
-  lax.cond: only one branch runs). None: every tick may carry one.
+  gps_due: optional bool, the same for every vehicle (a Python bool, or [] unbatched under vmap): False on a tick where
+  no GPS sample can be fresh (envs/base.py's schedule); the shadow filter then leaves the GPS rows out
+  (ekf.on_gps_schedule). None: every tick may carry one.
 
   anchor: optional [4] GPS-free horizontal position (m) and velocity (m/s) of this tick (the detector's dead
   reckoning, detection.detector.position_check: dr[0], aid_vel); when the GPS becomes compromised (the alarm rises
@@ -411,8 +411,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   q_diag = jnp.zeros(shadow.P.shape[-1]).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)   # P of either layout
   shadow = shadow.replace(P=shadow.P + jnp.diag(q_diag))
   shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
-  shadow = (shadow_step(()) if gps_due is None
-            else jax.lax.cond(gps_due, lambda: shadow_step(()), lambda: shadow_step(("gps",))))
+  shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
   # ... with the correction folded into it: the gyro-bias state (the model rate's error) restarts at zero every tick,
