@@ -66,10 +66,16 @@ class AutoReset(Wrapper):
     out = self.env.step(state.replace(info=inner), action)
     with jax.named_scope("autoreset"):
       merged, taken = self._take_fresh(out, pool, cursor)
-    new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=out.obs,
-                    final_spec_robustness=out.info["spec_robustness"],
+      # What the finished step leaves for the caller's bookkeeping goes out through a barrier: a caller that reduces
+      # it over the batch (the trainer's episode statistics) would otherwise get its reductions fused with the
+      # selects above, which read the same values, into one reduction-rooted kernel (H200, 16,384 envs: 0.29 ms per
+      # step, half of the auto-reset's time; BENCHMARKS.md session 15).
+      last, final_obs, final_rob = jax.lax.optimization_barrier(
+          (out.info["episode"], out.obs, out.info["spec_robustness"]))
+    new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=final_obs,
+                    final_spec_robustness=final_rob,
                     pool_cursor=((cursor + taken) % pool_n).astype(jnp.int32), pool_refresh=ref_ptr,
-                    reset_key=info["reset_key"], last_episode=out.info["episode"])
+                    reset_key=info["reset_key"], last_episode=last)
     merged = merged.replace(info=new_info)
     if self._refresh_in_step:
       merged = self._regenerate(merged, refresh)
