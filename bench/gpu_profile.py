@@ -4,6 +4,7 @@
   python bench/gpu_profile.py --ekf --envs 65536 [--fused-ekf]              # one vmapped ekf_step, by kernel
   python bench/gpu_profile.py --env-step --envs 65536 [--fused-ekf] [--phase 2]   # vmapped env steps, by stage
   python bench/gpu_profile.py --env-step --raw-mjx --envs 65536             # the same steps' raw MJX physics
+  python bench/gpu_profile.py --envs 16384 --iters-per-call 5 --keep-command-buffers --gaps   # where the GPU idles
 
 The function is compiled ahead of time, so every GPU kernel event of the trace (its `hlo_op`) can be mapped to the
 instruction's `op_name` in the optimised HLO, whose name stack carries the `jax.named_scope`s of ppo/iteration.py
@@ -132,7 +133,33 @@ def busy_us(events) -> float:
   return total
 
 
-def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tuple = ()):
+def idle_gaps(events, names: dict, top: int = 15) -> dict:
+  """The GPU's idle gaps between busy intervals (us, summed over the events), grouped by the kernel that ends the
+  interval before the gap and the one that starts the next (hlo op, or kernel name, and its stage)."""
+  iv = sorted(((ts, ts + dur, hlo or name[:50]) for name, hlo, dur, ts in events), key=lambda x: x[0])
+  gaps, bins = collections.Counter(), collections.Counter()
+  count = collections.Counter()
+  end, last = None, None
+  for a, b, k in iv:
+    if end is not None and a > end:
+      g = a - end
+      key = (last, k)
+      gaps[key] += g
+      count[key] += 1
+      bins["<5 us" if g < 5 else "5-20 us" if g < 20 else "20-100 us" if g < 100 else ">=100 us"] += g
+    if end is None or b > end:
+      end, last = b, k
+  st = lambda k: stage_of(names.get(k, "")) if names.get(k) else "?"   # noqa: E731
+  total = sum(gaps.values())
+  print(f"\nGPU idle between kernels: {total / 1e3:.2f} ms in {sum(count.values())} gaps; by gap length: "
+        + ", ".join(f"{b} {v / 1e3:.2f} ms" for b, v in sorted(bins.items())))
+  print("\n| gap after (stage) | before (stage) | idle us | gaps |\n|---|---|---:|---:|")
+  for (p, n), v in gaps.most_common(top):
+    print(f"| {p} ({st(p)}) | {n} ({st(n)}) | {v:.0f} | {count[(p, n)]} |")
+  return {"idle_us": total, "idle_bins_us": dict(bins)}
+
+
+def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tuple = (), gaps: bool = False):
   """Trace `runs` calls of an AOT-compiled function and print GPU time by stage, the largest kernels, and the
   largest kernels of each stage in `show`."""
   import jax
@@ -149,21 +176,23 @@ def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tupl
   total = sum(dur for _, _, dur, _ in ev) / runs
   busy = busy_us(ev) / runs
   by_stage = collections.Counter()
+  stage_kernels = collections.Counter()
   by_kernel = collections.Counter()
   count = collections.Counter()
   for name, hlo, dur, _ in ev:
     op = names.get(hlo, "")
     st = stage_of(op) if op else ("unattributed" if not hlo else "other")
     by_stage[st] += dur / runs
+    stage_kernels[st] += 1
     key = (hlo or name[:60], st, op[-90:])
     by_kernel[key] += dur / runs
     count[key] += 1
   print(f"\n### {label}\n")
   print(f"wall {wall / 1e3:.2f} ms per call, GPU busy {busy / 1e3:.2f} ms (kernel time {total / 1e3:.2f} ms, "
         f"{len(ev) // max(runs, 1)} kernels), host/idle {max(wall - busy, 0) / 1e3:.2f} ms\n")
-  print("| stage | GPU ms per call | share of kernel time |\n|---|---:|---:|")
+  print("| stage | GPU ms per call | share of kernel time | kernels per call |\n|---|---:|---:|---:|")
   for st, v in by_stage.most_common():
-    print(f"| {st} | {v / 1e3:.2f} | {100 * v / max(total, 1e-9):.1f} % |")
+    print(f"| {st} | {v / 1e3:.2f} | {100 * v / max(total, 1e-9):.1f} % | {stage_kernels[st] // max(runs, 1)} |")
   print("\n| largest kernels (hlo op) | stage | us per call | launches | op_name (tail) |\n|---|---|---:|---:|---|")
   for (k, st, op), v in by_kernel.most_common(top):
     print(f"| {k} | {st} | {v:.0f} | {count[(k, st, op)] // max(runs, 1)} | {op} |")
@@ -171,7 +200,11 @@ def profile(compiled, args, label: str, top: int = 15, runs: int = 1, show: tupl
     print(f"\n| largest kernels of stage {want} | us per call | launches | op_name (tail) |\n|---|---:|---:|---|")
     for (k, st, op), v in [kv for kv in by_kernel.most_common() if kv[0][1] == want][:top]:
       print(f"| {k} | {v:.0f} | {count[(k, st, op)] // max(runs, 1)} | {op} |")
-  return {"wall_us": wall, "busy_us": busy, "kernel_us": total, "stages_us": dict(by_stage)}
+  res = {"wall_us": wall, "busy_us": busy, "kernel_us": total, "stages_us": dict(by_stage),
+         "stage_kernels": {k: v // max(runs, 1) for k, v in stage_kernels.items()}}
+  if gaps:
+    res.update(idle_gaps(ev, names, top))
+  return res
 
 
 def main(argv=None):
@@ -195,6 +228,9 @@ def main(argv=None):
   ap.add_argument("--top", type=int, default=15)
   ap.add_argument("--show", nargs="*", default=["other"], help="stages whose largest kernels are listed too")
   ap.add_argument("--keep-command-buffers", action="store_true")
+  ap.add_argument("--gaps", action="store_true",
+                  help="also list the GPU's idle gaps by the kernels around them (use with --keep-command-buffers "
+                       "to see a normal run's idle time)")
   ap.add_argument("--json", help="write the figures here")
   a = ap.parse_args(argv)
   if not a.keep_command_buffers:
@@ -232,7 +268,7 @@ def main(argv=None):
                            f"nan_fallback={not a.no_nan_fallback}")
     fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
     label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
-    res = profile(fn.lower(*args).compile(), args, label, a.top, runs=2, show=a.show)
+    res = profile(fn.lower(*args).compile(), args, label, a.top, runs=2, show=a.show, gaps=a.gaps)
   else:
     from specguard_jax.ppo import attacker, config, distributed, iteration, losses, runner
     base = runner.default_sizes("gpu")
@@ -251,7 +287,7 @@ def main(argv=None):
     print(f"[gpu_profile] compiled in {time.perf_counter() - t:.0f} s", flush=True)
     label = (f"one training call, phase {a.phase}, {a.vehicle}, {a.envs} envs x {a.unroll} steps x "
              f"{a.iters_per_call} iteration(s), fused_ekf={a.fused_ekf}, {dev}")
-    res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show)
+    res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show, gaps=a.gaps)
   if a.json:
     json.dump(dict(res, device=dev, args=vars(a), date=time.strftime("%F")), open(a.json, "w"), indent=1)
 

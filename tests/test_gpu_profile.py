@@ -60,6 +60,19 @@ def test_busy_time_counts_overlaps_once():
   assert gpu_profile.busy_us(ev) == pytest.approx(14.0)   # [0, 10] u [5, 10] u [20, 24] u [21, 22]
 
 
+def test_idle_gaps_are_charged_to_the_kernels_around_them(capsys):
+  # busy [0, 10] (a, b overlapping), idle 10 us, [20, 24] (c, d), idle 1 us, [25, 26] (a again), idle 30 us, e
+  ev = [("a", "k1", 10.0, 0.0), ("b", "k2", 5.0, 5.0), ("c", "k3", 4.0, 20.0), ("d", "k4", 1.0, 21.0),
+        ("a", "k1", 1.0, 25.0), ("e", "", 2.0, 56.0)]
+  res = gpu_profile.idle_gaps(ev, {"k1": "jit(run)/while/body/ppo_update/dot"})
+  assert res["idle_us"] == pytest.approx(41.0)
+  assert res["idle_bins_us"] == pytest.approx({"5-20 us": 10.0, "<5 us": 1.0, "20-100 us": 30.0})
+  out = capsys.readouterr().out
+  assert "| k1 (ppo_update) | e (?) | 30 | 1 |" in out    # the kernel ending the busy interval, then the next one
+  assert "| k1 (ppo_update) | k3 (?) | 10 | 1 |" in out   # k1 ends [0, 10] (b ended earlier)
+  assert "| k3 (?) | k1 (ppo_update) | 1 | 1 |" in out
+
+
 def test_gpu_events_read_from_the_perfetto_trace(tmp_path):
   d = tmp_path / "plugins" / "profile" / "run1"
   d.mkdir(parents=True)
