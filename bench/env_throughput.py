@@ -1,11 +1,14 @@
 """Env throughput: full env step (sensors, EKF, navigator, autopilot, world queries, MJX) vs raw MJX physics.
 
   python bench/env_throughput.py [--vehicles drone rover] [--envs 4096 65536 262144] [--steps 50] [--json OUT]
+      [--trainer-env] [--fused-ekf]
 
 For each vehicle and batch size: env steps/s (one env step = ticks_per_step autopilot ticks = 0.1 s of flight),
 control ticks/s, raw `mjx.step` steps/s of the same MJCF model at the same batch (ctrl/forces held constant), and
 the cost ratio raw_mjx_steps_per_s / env_ticks_per_s (1.0 = the env costs no more than its physics). Auto-reset
 (new mission + world per finished episode) is included, as in training. Timing excludes compilation (reported).
+--trainer-env: the env as the trainer steps it (ppo/iteration.py: no NaN fallback, the reset pool refreshed once per
+rollout of --steps steps instead of inside every step); --fused-ekf: the EKF's covariance work as one GPU kernel.
 """
 
 from __future__ import annotations
@@ -30,13 +33,14 @@ def _time(fn, *args, repeats=3):
   return best, out
 
 
-def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True) -> dict:
+def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True, trainer_env: bool = False,
+              fused_ekf: bool = False) -> dict:
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
 
-  env = envs.make(vehicle)
-  benv = AutoReset(VmapWrapper(env)) if autoreset else VmapWrapper(env)
+  env = envs.make(vehicle, fused_ekf=fused_ekf, nan_fallback=not trainer_env)
+  benv = AutoReset(VmapWrapper(env), refresh_in_step=not trainer_env) if autoreset else VmapWrapper(env)
   keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
   t0 = time.perf_counter()
   state = jax.jit(benv.reset)(keys)
@@ -47,7 +51,8 @@ def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True) -> 
   def run(state):
     def body(s, _):
       return benv.step(s, jnp.zeros((n_envs, 3))), None
-    return jax.lax.scan(body, state, None, length=steps)[0]
+    out = jax.lax.scan(body, state, None, length=steps)[0]
+    return benv.refresh_pool(out, steps) if autoreset and trainer_env else out
 
   t0 = time.perf_counter()
   state = run(state)
@@ -91,6 +96,9 @@ def main():
   p.add_argument("--steps", type=int, default=50, help="env steps per timed call")
   p.add_argument("--json", default=None, help="also write results to this JSON file")
   p.add_argument("--no-autoreset", action="store_true", help="time the bare vmapped env (episodes may end)")
+  p.add_argument("--trainer-env", action="store_true",
+                 help="no NaN fallback, the reset pool refreshed once per --steps rollout (as ppo/iteration.py)")
+  p.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel")
   args = p.parse_args()
   dev = jax.devices()[0]
   print(f"device: {dev.device_kind} ({jax.default_backend()}), jax {jax.__version__}")
@@ -98,8 +106,9 @@ def main():
   for vehicle in args.vehicles:
     for n in args.envs:
       r = {"vehicle": vehicle, "envs": n}
-      r.update(bench_env(vehicle, n, args.steps, autoreset=not args.no_autoreset))
-      r["autoreset"] = not args.no_autoreset
+      r.update(bench_env(vehicle, n, args.steps, autoreset=not args.no_autoreset, trainer_env=args.trainer_env,
+                         fused_ekf=args.fused_ekf))
+      r.update(autoreset=not args.no_autoreset, trainer_env=args.trainer_env, fused_ekf=args.fused_ekf)
       r.update(bench_mjx(vehicle, n, args.steps * r["ticks_per_step"]))
       r["cost_ratio"] = r["mjx_steps_per_s"] / r["ticks_per_s"]
       rows.append(r)
@@ -108,7 +117,7 @@ def main():
             f"compile={r['compile_s']:.1f}s", flush=True)
   if args.json:
     with open(args.json, "w") as f:
-      json.dump({"device": dev.device_kind, "rows": rows}, f, indent=1)
+      json.dump({"device": dev.device_kind, "date": time.strftime("%F"), "rows": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -252,7 +252,7 @@ def main(argv=None):
   save = lambda: json.dump(res, open(os.path.join(a.out, "scaling.json"), "w"), indent=1)  # noqa: E731
   if not a.no_throughput:
     print(f"### Training throughput ({a.vehicle}, {res['device']}, unroll {a.unroll}, compile excluded)\n")
-    print("| devices | envs (global) | envs / device | phase | M env steps/s | x 1 device | first call s | GB in use |")
+    print("| devices | envs (global) | envs / device | phase | M env steps/s | x 1 device | first call s | peak GB |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)
     for e in a.envs:
       for p in a.phases:
@@ -266,7 +266,7 @@ def main(argv=None):
           res["throughput"].append(row)
           rel = f"{sps / base:.2f}" if base else "-"
           print(f"| {d} | {n} | {n // d} | {p} | {sps / 1e6:.3f} | {rel} | {first:.1f} | "
-                f"{mem.get('in_use_gb', float('nan')):.1f} |", flush=True)
+                f"{mem.get('peak_gb', float('nan')):.1f} |", flush=True)
           save()
           jax.clear_caches()
   if a.max_envs:
