@@ -28,6 +28,11 @@ def drone_step(drone_env):
 
 
 @pytest.fixture(scope="module")
+def drone_reset(drone_env):
+  return jax.jit(drone_env.reset)  # compiled once (run eagerly, op by op, a reset takes ~50 s on a 2-core CPU)
+
+
+@pytest.fixture(scope="module")
 def rover_env():
   return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
 
@@ -68,9 +73,8 @@ def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env)
                                 axis=-1))) < 1.5
 
 
-def test_reset_is_deterministic_and_signals_consistent(drone_env):
-  env = drone_env
-  reset = jax.jit(env.reset)
+def test_reset_is_deterministic_and_signals_consistent(drone_env, drone_reset):
+  env, reset = drone_env, drone_reset
   a, b, c = reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(1)), reset(jax.random.PRNGKey(2))
   for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -84,10 +88,9 @@ def test_reset_is_deterministic_and_signals_consistent(drone_env):
   assert np.all(np.isfinite(np.asarray(a.obs)))
 
 
-def test_collision_terminates(drone_env, drone_step):
+def test_collision_terminates(drone_reset, drone_step):
   """An obstacle planted on the take-off point: obstacle distance < vehicle radius -> collision, episode ends."""
-  env = drone_env
-  s = env.reset(jax.random.PRNGKey(3))
+  s = drone_reset(jax.random.PRNGKey(3))
   w = s.info["world"]
   home = s.info["mission"].home
   cyl = w.cylinders.at[0].set(jnp.array([home[0], home[1], 2.0, 40.0]))
@@ -98,10 +101,9 @@ def test_collision_terminates(drone_env, drone_step):
   assert float(s2.info["signals"]["obstacle_distance"]) < 0
 
 
-def test_nan_physics_never_leaks(drone_env, drone_step):
+def test_nan_physics_never_leaks(drone_reset, drone_step):
   """A NaN thrust gain blows up the physics: the step ends the episode, flags it, zero reward, finite obs/state."""
-  env = drone_env
-  s = env.reset(jax.random.PRNGKey(4))
+  s = drone_reset(jax.random.PRNGKey(4))
   dr = dict(s.info["sim"]["dr"], thrust_gain=jnp.asarray(jnp.nan))
   s = s.replace(info=dict(s.info, sim=dict(s.info["sim"], dr=dr)))
   s2 = drone_step(s, jnp.zeros(3))

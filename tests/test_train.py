@@ -124,6 +124,17 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
 TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
 
 
+_COMPILES = {"on": False, "secs": []}   # XLA compiles over 1 s while recording (the resumed run below)
+
+
+def _on_duration(event, secs, **_):
+  if _COMPILES["on"] and "backend_compile" in event and secs > 1.0:
+    _COMPILES["secs"].append(secs)
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
   """One uninterrupted two-phase run (with held-out eval + export) and a twin stopped inside phase 2 and resumed;
@@ -133,8 +144,12 @@ def runs(tmp_path_factory):
   full = runner.train(cfg, str(root / "full"), progress=False)
   part = runner.train(cfg, str(root / "part"), progress=False, export=False, stop_after_calls=3)
   shutil.copytree(root / "part", root / "cut")   # the same stop, for the phase-boundary resume below
-  resumed = runner.train(cfg, str(root / "part"), resume=True, progress=False)
-  return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed)
+  _COMPILES["on"] = True
+  try:
+    resumed = runner.train(cfg, str(root / "part"), resume=True, progress=False)
+  finally:
+    _COMPILES["on"] = False
+  return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed, resumed_compiles=list(_COMPILES["secs"]))
 
 
 def _final_sg(cfg, run_dir):
@@ -149,6 +164,9 @@ def _final_sg(cfg, run_dir):
 
 def test_interrupted_run_resumes_bit_identical(runs):
   assert runs["part"]["interrupted"] and runs["part"]["calls"] == 3
+  # The restored carry has the fresh one's types and shardings (zero-size leaves, which Orbax does not store,
+  # included), so the resumed run reuses the compiled phase instead of compiling it again.
+  assert runs["resumed_compiles"] == [], runs["resumed_compiles"]
   assert runs["resumed"]["env_steps"] == runs["full"]["env_steps"] == 4 * 2 * 64
   full = _final_sg(runs["cfg"], runs["root"] / "full")
   part = _final_sg(runs["cfg"], runs["root"] / "part")

@@ -294,10 +294,12 @@ def detector_init(cfg: DetectorConfig) -> DetectorState:
                        diagnosis=jnp.full((), -1, jnp.int32), mask=jnp.zeros((N_SENSORS,), jnp.float32),
                        time_since_alarm=z, quiet_time=z, n_alarms=jnp.zeros((), jnp.int32), time=z,
                        baseline=jnp.zeros(6), rate_model=jnp.zeros(3), airborne_time=z, cons_v=jnp.zeros(8),
-                       cons_z=z, cons_w=jnp.zeros(2), cons_age=jnp.full((2,), 1e3), gps_age=jnp.full((), 1e3), cons=jnp.zeros(5),
-                       cpeak=jnp.zeros(5), dr=jnp.full((4, 2), jnp.nan), dr_e=jnp.zeros((4, 2)), aid=jnp.zeros(2),
-                       aid_age=jnp.full((), 1e3),
-                       comp=jnp.full((2, 2), jnp.nan), comp_e=jnp.zeros((2, 2)), aid_vel=jnp.full((2,), jnp.nan),
+                       cons_z=z, cons_w=jnp.zeros(2), cons_age=jnp.full((2,), 1e3, jnp.float32),
+                       gps_age=jnp.full((), 1e3, jnp.float32), cons=jnp.zeros(5),
+                       cpeak=jnp.zeros(5), dr=jnp.full((4, 2), jnp.nan, jnp.float32), dr_e=jnp.zeros((4, 2)),
+                       aid=jnp.zeros(2), aid_age=jnp.full((), 1e3, jnp.float32),
+                       comp=jnp.full((2, 2), jnp.nan, jnp.float32), comp_e=jnp.zeros((2, 2)),
+                       aid_vel=jnp.full((2,), jnp.nan, jnp.float32),
                        xchk=jnp.zeros(N_XCHK), xpeak=jnp.zeros(N_XCHK),
                        xraised=jnp.zeros((), bool), base_slow=jnp.zeros(6), acc_e=jnp.zeros(3))
 

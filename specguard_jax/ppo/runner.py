@@ -130,8 +130,16 @@ def abstract_carry(phase, key, sg_state, aa_state):
 
 def _unpack(abstract, packed: dict):
   leaves, tree = jax.tree.flatten(abstract)
-  out = [packed[str(i)] if str(i) in packed else jnp.zeros(a.shape, a.dtype) for i, a in enumerate(leaves)]
+  out = [packed[str(i)] if str(i) in packed else _zero_size(a) for i, a in enumerate(leaves)]
   return jax.tree.unflatten(tree, out)
+
+
+def _zero_size(a):
+  """A zero-size carry leaf (not stored by Orbax) rebuilt with the abstract leaf's sharding: a leaf placed otherwise
+  would make the phase's compiled call miss its cache and compile again on the restored carry."""
+  z = jnp.zeros(a.shape, a.dtype)
+  sharding = getattr(a, "sharding", None)
+  return jax.device_put(z, sharding) if sharding is not None else z
 
 
 def _save(mgr, carry, host: dict):
