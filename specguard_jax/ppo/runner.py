@@ -136,10 +136,11 @@ def _unpack(abstract, packed: dict):
 
 def _zero_size(a):
   """A zero-size carry leaf (not stored by Orbax) rebuilt with the abstract leaf's sharding: a leaf placed otherwise
-  would make the phase's compiled call miss its cache and compile again on the restored carry."""
-  z = jnp.zeros(a.shape, a.dtype)
+  would make the phase's compiled call miss its cache and compile again on the restored carry. Built per shard, so
+  a sharding spanning several processes' devices works too."""
+  z = np.zeros(a.shape, a.dtype)
   sharding = getattr(a, "sharding", None)
-  return jax.device_put(z, sharding) if sharding is not None else z
+  return jnp.asarray(z) if sharding is None else jax.make_array_from_callback(a.shape, sharding, lambda i: z[i])
 
 
 def _save(mgr, carry, host: dict):
