@@ -61,6 +61,10 @@ def parse_args(argv=None):
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")
+  ap.add_argument("--network-dtype", choices=("float32", "bfloat16"),
+                  help="the agents' networks' compute dtype in training: float32 (default) or bfloat16 (matmuls, "
+                       "bias adds and tanh in bf16; f32 parameters, optimizer and losses; evaluation and ONNX "
+                       "export stay f32)")
   ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
   ap.add_argument("--env-groups", type=int,
                   help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
@@ -90,7 +94,7 @@ def build_config(a):
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
             "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf,
-            "matmul_precision": a.matmul_precision}
+            "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:
     over["phase1_steps"] = a.steps // 2

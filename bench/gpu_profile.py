@@ -217,6 +217,8 @@ def main(argv=None):
   ap.add_argument("--fused-ekf", action="store_true")
   ap.add_argument("--matmul-precision", default="default", choices=("default", "bf16"),
                   help="the agents' network matmuls (train.py's flag; training call only)")
+  ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
+                  help="the agents' networks' compute dtype (train.py's flag; default: its GPU default)")
   ap.add_argument("--ekf", action="store_true", help="profile one vmapped ekf_step (every sensor fresh) instead")
   ap.add_argument("--env-step", action="store_true",
                   help="profile --steps vmapped env steps (zero action, no auto-reset) instead of a training call")
@@ -275,7 +277,7 @@ def main(argv=None):
     cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
                              iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
                              phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1,
-                             matmul_precision=a.matmul_precision).validate()
+                             matmul_precision=a.matmul_precision, network_dtype=a.network_dtype).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
     sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)

@@ -35,7 +35,8 @@ def _cfg(a, envs, devices, **kw):
   base = runner.default_sizes("gpu")
   c = config.TrainConfig(vehicle=a.vehicle, num_envs=envs, unroll_length=a.unroll, iters_per_call=a.iters_per_call,
                          phase1_steps=base["phase1_steps"], phase2_steps=base["phase2_steps"], num_devices=devices,
-                         seed=a.seed, env_groups=kw.pop("env_groups", 0), fused_ekf=a.fused_ekf, **kw)
+                         seed=a.seed, env_groups=kw.pop("env_groups", 0), fused_ekf=a.fused_ekf,
+                         network_dtype=a.network_dtype, **kw)
   if a.smoke:
     tiny = config.PPOConfig(num_minibatches=2, update_epochs=1)
     c = dataclasses.replace(c, hidden=(32, 32), sg=tiny, aa=tiny, worlds=("suburban_residential",))
@@ -227,6 +228,8 @@ def main(argv=None):
   ap.add_argument("--calls", type=int, default=3, help="timed calls per measurement (after the compile call)")
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel (train.py's flag)")
+  ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
+                  help="the agents' networks' compute dtype in training (train.py's flag; default: its GPU default)")
   ap.add_argument("--no-throughput", action="store_true")
   ap.add_argument("--max-envs", type=int, metavar="START", help="double the env count from START until OOM")
   ap.add_argument("--max-envs-limit", type=int, default=1 << 22)

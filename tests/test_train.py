@@ -66,8 +66,9 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
   assert not bad, bad[:3]
 
 
-def _dot_precisions(cfg, phase):
-  """[(bf16 inputs?, names of the scopes it was traced in)] of every dot_general in the lowered phase program."""
+def _dot_precisions(cfg, phase, precision=True):
+  """[(bf16?, names of the scopes it was traced in)] of every dot_general in the lowered phase program. bf16: the
+  dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
   c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
@@ -82,7 +83,8 @@ def _dot_precisions(cfg, phase):
   for line in txt.splitlines():
     if "dot_general" in line:
       ref = re.search(r"loc\((#loc\d+)\)\s*$", line)
-      out.append(("lhs_precision_type = bf16" in line, " ".join(names(ref.group(1))) if ref else ""))
+      bf16 = "lhs_precision_type = bf16" in line if precision else bool(re.search(r"->\s*tensor<[^>]*bf16>", line))
+      out.append((bf16, " ".join(names(ref.group(1))) if ref else ""))
   return out
 
 
@@ -100,6 +102,23 @@ def test_bf16_matmuls_only_in_the_agents_networks():
   with pytest.raises(ValueError, match="unknown matmul_precision 'fp8'"):
     tiny(matmul_precision="fp8")
   assert train_cli.build_config(train_cli.parse_args(["--matmul-precision", "bf16"])).matmul_precision == "bf16"
+
+
+def test_bf16_network_dtype_only_in_the_hidden_layers():
+  """network_dtype='bfloat16' computes the hidden layers of both agents' networks in bf16 (acting, bootstrap
+  values, PPO update), never their output layers (logits, means, values stay f32) and nothing of the env."""
+  default = _dot_precisions(tiny(phase2_steps=256), 2, precision=False)
+  bf16 = _dot_precisions(tiny(phase2_steps=256, network_dtype="bfloat16"), 2, precision=False)
+  assert len(default) == len(bf16) and not any(b for b, _ in default)
+  low = [n for b, n in bf16 if b]
+  assert len(low) >= 20 and all("MLP" in n for n in low)              # SG + AA hidden layers, forward and backward
+  assert not any("dense_2" in n for n in low)                          # hidden=(32, 32) and (128, 128): dense_2 = output
+  assert any("dense_2" in n for b, n in bf16 if not b)
+  assert any("physics" in n for b, n in bf16 if not b) and any("ekf" in n for b, n in bf16 if not b)
+  with pytest.raises(ValueError, match="unknown network_dtype 'fp8'"):
+    tiny(network_dtype="fp8")
+  assert train_cli.build_config(train_cli.parse_args(["--network-dtype", "float32"])).network_dtype == "float32"
+  assert runner.default_sizes("gpu")["network_dtype"] == "bfloat16" and "network_dtype" not in runner.default_sizes("cpu")
 
 
 def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):

@@ -100,6 +100,10 @@ class TrainConfig:
   # as TF32 on NVIDIA GPUs) or 'bf16' (matmul inputs rounded to bfloat16, f32 accumulation and everything else f32:
   # jax.lax.DotAlgorithmPreset.BF16_BF16_F32). The env, the held-out evaluation and the ONNX export stay f32.
   matmul_precision: str = "default"
+  # The agents' networks' compute dtype in training (networks.DTYPES): 'float32', or 'bfloat16' (matmuls, bias adds
+  # and tanh in bf16, halving the activations' memory traffic; f32 parameters, optimizer, losses and outputs).
+  # Evaluation and the ONNX export stay float32.
+  network_dtype: str = "float32"
 
   def validate(self):
     from envs import worlds as worlds_lib
@@ -124,6 +128,8 @@ class TrainConfig:
     if self.matmul_precision not in MATMUL_PRECISIONS:
       raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; choose one of "
                        f"{', '.join(MATMUL_PRECISIONS)}")
+    if self.network_dtype not in ("float32", "bfloat16"):
+      raise ValueError(f"unknown network_dtype {self.network_dtype!r}; choose float32 or bfloat16")
     if self.num_devices < 0 or self.env_groups < 0:
       raise ValueError("num_devices and env_groups must be >= 0 (0 = one per device / all devices)")
     if self.env_groups and self.num_envs % self.env_groups:

@@ -70,13 +70,14 @@ def _adam(lr, frac, ent_coef, clip_eps, vf_coef, max_grad_norm):
 def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig, total_updates: int,
                obs_clip: float = 10.0) -> Agent:
   """Agent with Adam (global-norm gradient clipping, constant or linearly decaying step size); lr, ent_coef,
-  clip_eps and vf_coef are data in the optimizer state (see HPARAMS)."""
+  clip_eps and vf_coef are data in the optimizer state (see HPARAMS). The value network computes in the policy's
+  dtype."""
   frac = (optax.linear_schedule(1.0, ppo.lr_end_frac, max(1, total_updates)) if ppo.lr_schedule == "linear"
           else 1.0)
   opt = optax.inject_hyperparams(_adam, static_args=("max_grad_norm",))(
       lr=ppo.lr, frac=frac, ent_coef=ppo.ent_coef, clip_eps=ppo.clip_eps, vf_coef=ppo.vf_coef,
       max_grad_norm=ppo.max_grad_norm)
-  return Agent(policy=policy, value=networks.value_module(value_hidden, activation), optimizer=opt, ppo=ppo,
+  return Agent(policy=policy, value=networks.value_module(value_hidden, activation, policy.dtype), optimizer=opt, ppo=ppo,
                obs_clip=obs_clip)
 
 

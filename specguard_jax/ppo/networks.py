@@ -27,13 +27,19 @@ ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu, "swish": nn.swis
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
 """[6, 3] unit moves of the paper's discrete actions {+x, -x, +y, -y, +z, -z} (yaw frame)."""
 ACTION_KINDS = ("discrete", "gaussian")
+DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+"""Compute dtypes of the networks' hidden layers (`MLP.dtype`): 'float32' (Flax's default) or 'bfloat16' (matmuls, bias
+adds and activations in bf16; parameters and the output layer stay f32)."""
 
 
 class MLP(nn.Module):
-  """Dense layers of `sizes` (the last one linear, orthogonal init scaled by `final_scale`)."""
+  """Dense layers of `sizes` (the last one linear, orthogonal init scaled by `final_scale`). dtype: a key of DTYPES,
+  the hidden layers' compute dtype; the parameters are float32 either way, and the last (output) layer computes in
+  float32, so logits, means and values keep f32 resolution."""
   sizes: Sequence[int]
   activation: str = "tanh"
   final_scale: float = 1.0
+  dtype: str = "float32"
 
   @nn.compact
   def __call__(self, x):
@@ -41,7 +47,7 @@ class MLP(nn.Module):
     for i, n in enumerate(self.sizes):
       last = i == len(self.sizes) - 1
       x = nn.Dense(n, kernel_init=nn.initializers.orthogonal(self.final_scale if last else np.sqrt(2.0)),
-                   name=f"dense_{i}")(x)
+                   dtype=None if last else DTYPES[self.dtype], param_dtype=jnp.float32, name=f"dense_{i}")(x)
       if not last:
         x = act(x)
     return x
@@ -55,15 +61,18 @@ class Policy:
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
   init_log_std: float = -0.5
+  dtype: str = "float32"   # the layers' compute dtype (DTYPES); the parameters are float32 either way
 
   def __post_init__(self):
     if self.kind not in ACTION_KINDS:
       raise ValueError(f"unknown action head {self.kind!r}; choose one of {ACTION_KINDS}")
     if self.activation not in ACTIVATIONS:
       raise ValueError(f"unknown activation {self.activation!r}; choose one of {', '.join(ACTIVATIONS)}")
+    if self.dtype not in DTYPES:
+      raise ValueError(f"unknown network dtype {self.dtype!r}; choose one of {', '.join(DTYPES)}")
 
   def module(self) -> MLP:
-    return MLP(tuple(self.hidden) + (self.n,), self.activation, 0.01)
+    return MLP(tuple(self.hidden) + (self.n,), self.activation, 0.01, self.dtype)
 
   def init(self, key, n_obs: int) -> dict:
     p = {"net": self.module().init(key, jnp.zeros((1, n_obs)))["params"]}
@@ -109,9 +118,9 @@ def _gauss_logp(mean, log_std, a):
   return jnp.sum(-0.5 * z * z - log_std - 0.5 * np.log(2 * np.pi), axis=-1)
 
 
-def value_module(hidden: Sequence[int], activation: str = "tanh") -> MLP:
-  """State-value network obs -> [.., 1]."""
-  return MLP(tuple(hidden) + (1,), activation, 1.0)
+def value_module(hidden: Sequence[int], activation: str = "tanh", dtype: str = "float32") -> MLP:
+  """State-value network obs -> [.., 1] (float32; `dtype`: the layers' compute dtype, see DTYPES)."""
+  return MLP(tuple(hidden) + (1,), activation, 1.0, dtype)
 
 
 def to_setpoint(kind: str, action, speeds):
