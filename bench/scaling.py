@@ -229,7 +229,8 @@ def main(argv=None):
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel (train.py's flag)")
   ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
-                  help="the agents' networks' compute dtype in training (train.py's flag; default: its GPU default)")
+                  help="the agents' networks' compute dtype in training (train.py's flag; default: its GPU "
+                       "default)")
   ap.add_argument("--no-throughput", action="store_true")
   ap.add_argument("--max-envs", type=int, metavar="START", help="double the env count from START until OOM")
   ap.add_argument("--max-envs-limit", type=int, default=1 << 22)

@@ -112,13 +112,14 @@ def test_bf16_network_dtype_only_in_the_hidden_layers():
   assert len(default) == len(bf16) and not any(b for b, _ in default)
   low = [n for b, n in bf16 if b]
   assert len(low) >= 20 and all("MLP" in n for n in low)              # SG + AA hidden layers, forward and backward
-  assert not any("dense_2" in n for n in low)                          # hidden=(32, 32) and (128, 128): dense_2 = output
+  assert not any("dense_2" in n for n in low)            # hidden=(32, 32) and (128, 128): dense_2 is the output layer
   assert any("dense_2" in n for b, n in bf16 if not b)
   assert any("physics" in n for b, n in bf16 if not b) and any("ekf" in n for b, n in bf16 if not b)
   with pytest.raises(ValueError, match="unknown network_dtype 'fp8'"):
     tiny(network_dtype="fp8")
   assert train_cli.build_config(train_cli.parse_args(["--network-dtype", "float32"])).network_dtype == "float32"
-  assert runner.default_sizes("gpu")["network_dtype"] == "bfloat16" and "network_dtype" not in runner.default_sizes("cpu")
+  assert runner.default_sizes("gpu")["network_dtype"] == "bfloat16"
+  assert "network_dtype" not in runner.default_sizes("cpu")
 
 
 def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):

@@ -77,8 +77,8 @@ def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig
   opt = optax.inject_hyperparams(_adam, static_args=("max_grad_norm",))(
       lr=ppo.lr, frac=frac, ent_coef=ppo.ent_coef, clip_eps=ppo.clip_eps, vf_coef=ppo.vf_coef,
       max_grad_norm=ppo.max_grad_norm)
-  return Agent(policy=policy, value=networks.value_module(value_hidden, activation, policy.dtype), optimizer=opt, ppo=ppo,
-               obs_clip=obs_clip)
+  return Agent(policy=policy, value=networks.value_module(value_hidden, activation, policy.dtype), optimizer=opt,
+               ppo=ppo, obs_clip=obs_clip)
 
 
 def with_hparams(state: AgentState, ppo: PPOConfig) -> AgentState:
