@@ -14,7 +14,7 @@ import pytest
 
 import train as train_cli
 from specguard_jax import export
-from specguard_jax.ppo import attacker, config, iteration, losses, runner
+from specguard_jax.ppo import attacker, config, iteration, losses, networks, runner
 
 TINY_PPO = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
 
@@ -118,6 +118,7 @@ def test_bf16_network_dtype_only_in_the_hidden_layers():
   with pytest.raises(ValueError, match="unknown network_dtype 'fp8'"):
     tiny(network_dtype="fp8")
   assert train_cli.build_config(train_cli.parse_args(["--network-dtype", "float32"])).network_dtype == "float32"
+  assert tuple(networks.DTYPES) == config.NETWORK_DTYPES
   assert runner.default_sizes("gpu")["network_dtype"] == "bfloat16"
   assert "network_dtype" not in runner.default_sizes("cpu")
 

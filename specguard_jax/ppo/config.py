@@ -12,6 +12,7 @@ from specguard_jax.types import SENSOR_NAMES
 VARIANTS = ("rc", "pc")
 VEHICLES = ("drone", "rover")
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
+NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
 
 
 def network_precision(name: str):
@@ -128,8 +129,8 @@ class TrainConfig:
     if self.matmul_precision not in MATMUL_PRECISIONS:
       raise ValueError(f"unknown matmul_precision {self.matmul_precision!r}; choose one of "
                        f"{', '.join(MATMUL_PRECISIONS)}")
-    if self.network_dtype not in ("float32", "bfloat16"):
-      raise ValueError(f"unknown network_dtype {self.network_dtype!r}; choose float32 or bfloat16")
+    if self.network_dtype not in NETWORK_DTYPES:
+      raise ValueError(f"unknown network_dtype {self.network_dtype!r}; choose one of {', '.join(NETWORK_DTYPES)}")
     if self.num_devices < 0 or self.env_groups < 0:
       raise ValueError("num_devices and env_groups must be >= 0 (0 = one per device / all devices)")
     if self.env_groups and self.num_envs % self.env_groups:

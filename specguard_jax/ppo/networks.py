@@ -61,7 +61,7 @@ class Policy:
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
   init_log_std: float = -0.5
-  dtype: str = "float32"   # the layers' compute dtype (DTYPES); the parameters are float32 either way
+  dtype: str = "float32"   # the hidden layers' compute dtype (DTYPES); parameters and output layer stay float32
 
   def __post_init__(self):
     if self.kind not in ACTION_KINDS:
