@@ -34,7 +34,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Innermost first: a kernel is charged to the first of these found in its op_name's scope path.
 STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "reconstruction", "navigator", "stl_reward",
-          "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "episode_stats",
+          "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "values", "episode_stats",
           "pool_refresh", "gae", "ppo_update")
 _COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
 _DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
@@ -234,6 +234,8 @@ def main(argv=None):
                   help="also list the GPU's idle gaps by the kernels around them (use with --keep-command-buffers "
                        "to see a normal run's idle time)")
   ap.add_argument("--json", help="write the figures here")
+  ap.add_argument("--hlo-out", help="training call: also write its optimised HLO text here (to look up a kernel's "
+                                    "shapes and operands by its hlo op name)")
   a = ap.parse_args(argv)
   if not a.keep_command_buffers:
     os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="
@@ -287,6 +289,9 @@ def main(argv=None):
     # without donation (the traced calls reuse the same carry)
     compiled = jax.jit(ph.run.__wrapped__ if hasattr(ph.run, "__wrapped__") else ph.run).lower(carry).compile()
     print(f"[gpu_profile] compiled in {time.perf_counter() - t:.0f} s", flush=True)
+    if a.hlo_out:
+      with open(a.hlo_out, "w") as f:
+        f.write(compiled.as_text())
     label = (f"one training call, phase {a.phase}, {a.vehicle}, {a.envs} envs x {a.unroll} steps x "
              f"{a.iters_per_call} iteration(s), fused_ekf={a.fused_ekf}, {dev}")
     res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show, gaps=a.gaps)

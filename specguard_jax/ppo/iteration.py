@@ -32,6 +32,12 @@ from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, network_precision
 
+STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
+             "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
+             "override_steps")
+"""The per-iteration totals of the rollout's episode statistics (sums over steps and envs; metrics of run())."""
+
+
 @struct.dataclass
 class Carry:
   """Everything a phase's iterations thread through (checkpointed whole)."""
@@ -196,11 +202,11 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     return jax.vmap(jax.vmap(env.observe))(light, setpoint)
 
   def act_step(c, key):
-    sg_s, aa_s, state, ep_ret, ep_ret_aa = c
+    sg_s, aa_s, state, ep_ret, ep_ret_aa, totals = c
     k1, k2 = jax.random.split(key)
     obs = state.obs
     with jax.named_scope("policy"), nets():
-      a_sg, logp_sg, v_sg = sg.act(sg_s, obs, k1)
+      a_sg, logp_sg = sg.sample(sg_s, obs, k1)
       setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
     phase_now = state.info["sim"]["nav"].phase
     mask = ((phase_now == nav_lib.CRUISE) | (phase_now == nav_lib.LOITER)).astype(jnp.float32)
@@ -210,7 +216,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     if adversarial:
       with jax.named_scope("attack_agent"), nets():
         o_aa = aa_obs(state, setpoint)
-        a_aa, logp_aa, v_aa = aa.act(aa_s, o_aa, k2)
+        a_aa, logp_aa = aa.sample(aa_s, o_aa, k2)
       with jax.named_scope("env_step"):
         nxt = step(state, jnp.concatenate([setpoint, a_aa], axis=-1))
     else:
@@ -224,28 +230,28 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     complete = last["complete"] * done
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
-    final_obs = info["final_obs"]
-    with jax.named_scope("bootstrap_value"), nets():
-      next_value = sg.value_of(sg_s, final_obs)
-    out["sg"] = {"obs": obs, "action": a_sg, "logp": logp_sg, "value": v_sg, "reward": r_sg,
-                 "next_value": next_value, "terminated": term, "done": done, "mask": mask}
+    final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
+    # Values are computed after the rollout, in a few large batches (`values`), not here.
+    out["sg"] = {"obs": obs, "next_obs": final_obs, "action": a_sg, "logp": logp_sg, "reward": r_sg,
+                 "terminated": term, "done": done, "mask": mask}
     ep_ret = ep_ret + r_sg
     if adversarial:
       r_aa = env.reward(r_sg, info["aa_extra"])
-      with jax.named_scope("attack_agent"), nets():
+      with jax.named_scope("attack_agent"):
         o_aa_next = aa_obs(nxt.replace(obs=final_obs), setpoint)  # approximation: next attacker obs from final obs
-        next_value_aa = aa.value_of(aa_s, o_aa_next)
-      out["aa"] = {"obs": o_aa, "action": a_aa, "logp": logp_aa, "value": v_aa, "reward": r_aa,
-                   "next_value": next_value_aa, "terminated": term, "done": done, "mask": jnp.ones_like(done)}
+      out["aa"] = {"obs": o_aa, "next_obs": o_aa_next, "action": a_aa, "logp": logp_aa, "reward": r_aa,
+                   "terminated": term, "done": done, "mask": jnp.ones_like(done)}
       ep_ret_aa = ep_ret_aa + r_aa
-    # ---- episode statistics (finished episodes only) ----
+    # ---- episode statistics (finished episodes only), accumulated per env and summed once after the rollout ----
     with jax.named_scope("episode_stats"):
       stats = _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa)
+      totals = jax.tree.map(jnp.add, totals, stats)
     ep_ret = ep_ret * (1.0 - done)
     ep_ret_aa = ep_ret_aa * (1.0 - done)
-    return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa), (out, stats)
+    return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa, totals), out
 
   def _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa):
+    """{name: [G, B/G] float32} this step's contribution of each env to the iteration's STAT_KEYS totals."""
     last = info["last_episode"]
     viol = jnp.any(info["final_spec_robustness"] < 0, axis=-1).astype(jnp.float32)
     crit_viol = jnp.any((info["final_spec_robustness"] < 0) & crit, axis=-1).astype(jnp.float32)
@@ -256,13 +262,29 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
              "attacked": attacked * done, "attacked_complete": attacked * complete,
              "attacked_violated": attacked * viol * done, "return_sum": ep_ret * done,
              "return_aa_sum": ep_ret_aa * done, "reward_sum": r_sg, "override_steps": mask}
-    return jax.tree.map(lambda x: jnp.sum(x, axis=1), stats)   # [G]: per-group sums (no cross-device reduce per step)
+    assert tuple(stats) == STAT_KEYS
+    return stats
 
-  def advantages(tr, p):
-    """GAE over [T, G, B/G], then [T, G, B/G, ...] -> [T, B, ...] for losses.update (which splits B into G)."""
-    adv, target = losses.gae(tr["reward"], tr["value"], tr["next_value"], tr["terminated"], tr["done"],
-                             p.gamma, p.gae_lambda)
-    return jax.tree.map(lambda a: a.reshape((a.shape[0], B) + a.shape[3:]), dict(tr, adv=adv, target=target))
+  def values(agent, agent_state, tr, p):
+    """(V(obs), V(next_obs)), each [T, G, B/G], for a rollout's observations [T, G, B/G, n]: the value network
+    run after the rollout on chunks of T / num_minibatches steps (obs and next_obs of a chunk in one batch), so a
+    minibatch's worth of rows per pass instead of two B-row passes inside every env step."""
+    def chunk(x):      # (obs, next_obs) [G, B/G, n] each -> [2, G, B/G]
+      return agent.value_of(agent_state, jnp.stack(x))
+    with nets():
+      v = jax.lax.map(chunk, (tr["obs"], tr["next_obs"]), batch_size=max(1, tr["obs"].shape[0] // p.num_minibatches))
+    return v[:, 0], v[:, 1]
+
+  def advantages(agent, agent_state, tr, p):
+    """Values and GAE over [T, G, B/G], then [T, G, B/G, ...] -> [T, B, ...] for losses.update (which splits B
+    into G); only what the PPO loss reads goes on (losses.ppo_loss)."""
+    with jax.named_scope("values"):
+      value, next_value = values(agent, agent_state, tr, p)
+    with jax.named_scope("gae"):
+      adv, target = losses.gae(tr["reward"], value, next_value, tr["terminated"], tr["done"], p.gamma, p.gae_lambda)
+    batch = {k: tr[k] for k in ("obs", "action", "logp", "mask")}
+    return jax.tree.map(lambda a: a.reshape((a.shape[0], B) + a.shape[3:]),
+                        dict(batch, value=value, adv=adv, target=target))
 
   def upd(agent, state, batch, key):
     with jax.named_scope("ppo_update"), nets():
@@ -272,20 +294,21 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     """One iteration; turn: phase 2's learner (0 SG, 1 AA), from carry.iteration unless given (sweeps pass the
     members' common turn unbatched, so lax.cond stays a branch under vmap instead of running both updates)."""
     rng, k_roll, k_sg, k_aa = jax.random.split(carry.rng, 4)
-    init_c = (carry.sg, carry.aa, carry.env_state, carry.ep_return, carry.ep_return_aa)
-    (_, _, state, ep_ret, ep_ret_aa), (tr, stats) = jax.lax.scan(
+    # per-env running sums of the episode statistics (elementwise adds in the step; one reduction per iteration)
+    totals = {k: jnp.zeros_like(carry.ep_return) for k in STAT_KEYS}
+    init_c = (carry.sg, carry.aa, carry.env_state, carry.ep_return, carry.ep_return_aa, totals)
+    (_, _, state, ep_ret, ep_ret_aa, totals), tr = jax.lax.scan(
         act_step, init_c, jax.random.split(k_roll, cfg.unroll_length))
     with jax.named_scope("pool_refresh"):
       state = refresh_pool(state)
-    stats = jax.tree.map(jnp.sum, stats)
-    with jax.named_scope("gae"):
-      sg_batch = advantages(tr["sg"], cfg.sg)
+    with jax.named_scope("episode_stats"):
+      stats = jax.tree.map(jnp.sum, totals)
+    sg_batch = advantages(sg, carry.sg, tr["sg"], cfg.sg)
     sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])
     zeros = lambda shape: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
     if adversarial:
       turn = (carry.iteration // cfg.alternate_iters) % 2 if turn is None else turn
-      with jax.named_scope("gae"):
-        aa_batch = advantages(tr["aa"], cfg.aa)
+      aa_batch = advantages(aa, carry.aa, tr["aa"], cfg.aa)
       aa_shape = jax.eval_shape(lambda: upd(aa, carry.aa, aa_batch, k_aa)[1])
       sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: upd(sg, carry.sg, sg_batch, k_sg),
                                     lambda: (carry.sg, zeros(sg_shape)))

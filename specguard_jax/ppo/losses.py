@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import optax
 from brax.training.acme import running_statistics, specs
 from flax import struct
+from jax.flatten_util import ravel_pytree
 
 from specguard_jax.ppo import networks
 from specguard_jax.ppo.config import PPOConfig
@@ -21,7 +22,7 @@ from specguard_jax.ppo.config import PPOConfig
 class AgentState:
   """One learner: policy + value params, their Adam state, the observation normaliser and update count."""
   params: Any          # {'policy': ..., 'value': ...}
-  opt_state: Any
+  opt_state: Any       # the optimizer's state over the raveled params (flat [P] moment vectors, see `update`)
   normalizer: running_statistics.RunningStatisticsState
   updates: jnp.ndarray
 
@@ -40,7 +41,7 @@ class Agent:
     params = {"policy": self.policy.init(k1, n_obs),
               "value": self.value.init(k2, jnp.zeros((1, n_obs)))["params"]}
     norm = running_statistics.init_state(specs.Array((n_obs,), jnp.float32))
-    return AgentState(params=params, opt_state=self.optimizer.init(params), normalizer=norm,
+    return AgentState(params=params, opt_state=self.optimizer.init(ravel_pytree(params)[0]), normalizer=norm,
                       updates=jnp.zeros((), jnp.int32))
 
   def normalize(self, state: AgentState, obs):
@@ -51,6 +52,10 @@ class Agent:
     x = self.normalize(state, obs)
     a, logp = self.policy.sample(state.params["policy"], x, key)
     return a, logp, self.value_of(state, obs, normalized=x)
+
+  def sample(self, state: AgentState, obs, key):
+    """(action, log_prob) for raw observations obs [.., n_obs], without the value."""
+    return self.policy.sample(state.params["policy"], self.normalize(state, obs), key)
 
   def value_of(self, state: AgentState, obs, normalized=None):
     x = self.normalize(state, obs) if normalized is None else normalized
@@ -156,17 +161,21 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   n = T * (B // groups)
   normalizer = running_statistics.update(state.normalizer, flat["obs"])
   hp = {k: state.opt_state.hyperparams[k] for k in ("clip_eps", "ent_coef", "vf_coef")}
-  grad_fn = jax.value_and_grad(ppo_loss, argnums=1, has_aux=True)
+  # The minibatch steps work on the raveled params (one [P] vector): the gradient arrives as one vector and the
+  # clipping norm, Adam, the finiteness check and the skip-select are a handful of kernels per step instead of a few
+  # per parameter array (BENCHMARKS.md, session 18).
+  theta0, unravel = ravel_pytree(state.params)
+  loss_of_flat = lambda theta, mb: ppo_loss(agent, unravel(theta), normalizer, mb, hp)  # noqa: E731
+  grad_fn = jax.value_and_grad(loss_of_flat, has_aux=True)
 
   def minibatch(carry, mb):
-    params, opt_state, skips = carry
-    (loss, aux), g = grad_fn(agent, params, normalizer, constrain(mb), hp)
-    upd, new_opt = agent.optimizer.update(g, opt_state, params)
-    new_params = optax.apply_updates(params, upd)
-    ok = jnp.isfinite(loss) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(g)]))
-    params = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new_params, params)
+    theta, opt_state, skips = carry
+    (loss, aux), g = grad_fn(theta, constrain(mb))
+    upd, new_opt = agent.optimizer.update(g, opt_state, theta)
+    ok = jnp.isfinite(loss) & jnp.all(jnp.isfinite(g))
+    theta = jnp.where(ok, theta + upd, theta)
     opt_state = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new_opt, opt_state)
-    return (params, opt_state, skips + (~ok).astype(jnp.int32)), dict(aux, loss=loss)
+    return (theta, opt_state, skips + (~ok).astype(jnp.int32)), dict(aux, loss=loss)
 
   def epoch(carry, k):
     keys = jax.random.split(k, groups) if groups > 1 else k[None]
@@ -176,8 +185,9 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
         (groups, p.num_minibatches, -1) + a.shape[2:]), 0, 1), flat)
     return jax.lax.scan(minibatch, carry, mbs)
 
-  init = (state.params, state.opt_state, jnp.zeros((), jnp.int32))
-  (params, opt_state, skips), aux = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
+  init = (theta0, state.opt_state, jnp.zeros((), jnp.int32))
+  (theta, opt_state, skips), aux = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
+  params = unravel(theta)
   aux = jax.tree.map(jnp.mean, aux)
   aux["nan_skips"] = skips
   return AgentState(params=params, opt_state=opt_state, normalizer=normalizer, updates=state.updates + 1), aux
