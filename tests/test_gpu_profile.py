@@ -101,5 +101,5 @@ def test_a_compiled_training_iteration_carries_the_stage_scopes():
   text = jax.jit(ph.run.__wrapped__).lower(carry).compile().as_text()
   stages = {gpu_profile.stage_of(v) for v in gpu_profile.op_names(text).values()}
   want = {"policy", "env_step", "sensors", "ekf", "navigator", "autopilot", "physics", "stl_reward", "autoreset",
-          "bootstrap_value", "episode_stats", "pool_refresh", "gae", "ppo_update"}
+          "values", "episode_stats", "pool_refresh", "gae", "ppo_update"}
   assert want <= stages, want - stages

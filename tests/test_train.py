@@ -52,6 +52,37 @@ def test_nan_gradients_never_reach_params():
     np.testing.assert_array_equal(a, b)
 
 
+def test_update_on_raveled_params_equals_per_array_adam():
+  """losses.update runs Adam on the raveled params (one [P] vector); one epoch of one minibatch must equal optax's
+  clip + Adam applied array by array to the gradient of the same loss (a minibatch is a permutation of the batch,
+  and the loss is a mean over it)."""
+  ppo = config.PPOConfig(num_minibatches=1, update_epochs=1, lr=1e-2, max_grad_norm=0.05)
+  cfg = tiny(sg=ppo)
+  sg, _ = iteration.make_agents(cfg)
+  st = losses.with_hparams(sg.init(jax.random.PRNGKey(0), 24), ppo)
+  ks = jax.random.split(jax.random.PRNGKey(1), 6)
+  batch = {"obs": jax.random.normal(ks[0], (4, 8, 24)), "action": jax.random.normal(ks[1], (4, 8, 3)),
+           "logp": jax.random.normal(ks[2], (4, 8)), "value": jax.random.normal(ks[3], (4, 8)),
+           "adv": jax.random.normal(ks[4], (4, 8)), "target": jax.random.normal(ks[5], (4, 8)),
+           "mask": jnp.ones((4, 8))}
+  new, aux = jax.jit(lambda s, b, k: losses.update(sg, s, b, k))(st, batch, jax.random.PRNGKey(2))
+  assert int(aux["nan_skips"]) == 0
+  import optax
+  from brax.training.acme import running_statistics
+  flat = jax.tree.map(lambda a: a.reshape((32,) + a.shape[2:]), batch)
+  norm = running_statistics.update(st.normalizer, flat["obs"])
+  g = jax.grad(lambda p: losses.ppo_loss(sg, p, norm, flat)[0])(st.params)
+  tx = optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm), optax.adam(ppo.lr, eps=1e-5))
+  upd, _ = tx.update(g, tx.init(st.params), st.params)
+  ref = optax.apply_updates(st.params, upd)
+  assert jax.tree.structure(ref) == jax.tree.structure(new.params)
+  for a, b in zip(jax.tree.leaves(new.params), jax.tree.leaves(ref)):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+  moved = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(st.params)))
+  assert moved > 1e-3                         # the step did change the params
+  assert new.opt_state.inner_state[1][0].mu.ndim == 1     # Adam's moments are one raveled vector
+
+
 @pytest.mark.parametrize("phase", [1, 2])
 def test_carry_types_are_stable_so_calls_never_recompile(phase):
   """The carry a call returns has exactly the input's shapes/dtypes/weak types (else each call would recompile)."""
@@ -89,7 +120,7 @@ def _dot_precisions(cfg, phase, precision=True):
 
 
 def test_bf16_matmuls_only_in_the_agents_networks():
-  """--matmul-precision bf16 rounds the inputs of every matmul of both agents' networks (acting, bootstrap values,
+  """--matmul-precision bf16 rounds the inputs of every matmul of both agents' networks (acting, values,
   PPO update) to bfloat16, and of nothing else: the env's physics, EKF and reconstruction stay f32."""
   default = _dot_precisions(tiny(phase2_steps=256), 2)
   bf16 = _dot_precisions(tiny(phase2_steps=256, matmul_precision="bf16"), 2)
@@ -105,7 +136,7 @@ def test_bf16_matmuls_only_in_the_agents_networks():
 
 
 def test_bf16_network_dtype_only_in_the_hidden_layers():
-  """network_dtype='bfloat16' computes the hidden layers of both agents' networks in bf16 (acting, bootstrap
+  """network_dtype='bfloat16' computes the hidden layers of both agents' networks in bf16 (acting, after-rollout
   values, PPO update), never their output layers (logits, means, values stay f32) and nothing of the env."""
   default = _dot_precisions(tiny(phase2_steps=256), 2, precision=False)
   bf16 = _dot_precisions(tiny(phase2_steps=256, network_dtype="bfloat16"), 2, precision=False)

@@ -97,7 +97,7 @@ class TrainConfig:
   fused_ekf: bool = False           # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
-  # The agents' networks in training (acting, bootstrap values, PPO update): 'default' (f32 matmuls, which XLA runs
+  # The agents' networks in training (acting, values, PPO update): 'default' (f32 matmuls, which XLA runs
   # as TF32 on NVIDIA GPUs) or 'bf16' (matmul inputs rounded to bfloat16, f32 accumulation and everything else f32:
   # jax.lax.DotAlgorithmPreset.BF16_BF16_F32). The env, the held-out evaluation and the ONNX export stay f32.
   matmul_precision: str = "default"
