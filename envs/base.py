@@ -22,6 +22,7 @@ import os
 from typing import Any
 
 import jax
+import numpy as np
 import jax.numpy as jnp
 import mujoco
 from brax.envs.base import Env, State
@@ -142,6 +143,16 @@ def tree_where(cond, a, b):
   return jax.tree.map(sel, a, b)
 
 
+def check_physics_options(mj_model: mujoco.MjModel, name: str) -> None:
+  """Refuses a model whose joint damping would be lost to its disabled implicit Euler damping.
+
+  The assets turn the Euler integrator's implicit damping off (in MJX it refactors M every physics step whatever the
+  damping values) because they have no joint damping; a model that adds some must turn it back on.
+  """
+  if (mj_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP) and np.any(mj_model.dof_damping):
+    raise ValueError(f"{name}: joint damping needs the implicit Euler damping, remove eulerdamp=\"disable\"")
+
+
 class RAVEnv(Env):
   """Base class; see module docstring. Subclasses set `vehicle`, `asset`, `radius` and implement the hooks."""
 
@@ -155,6 +166,7 @@ class RAVEnv(Env):
     self.config = config
     self.mj_model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS, self.asset))
     self.mj_model.opt.timestep = config.tick_dt
+    check_physics_options(self.mj_model, self.asset)
     # On this process's own device: put_model's default, jax.devices()[0], is process 0's in a multi-process run, and
     # a compiled function closing over an array on another process's device fails to trace there.
     self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])

@@ -1,6 +1,7 @@
 """End-to-end env tests: missions flown by the autopilot alone, termination, NaN safety, auto-reset, override."""
 
 import dataclasses
+import os
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +12,7 @@ from brax.envs.wrappers.training import VmapWrapper
 import envs
 from envs import missions as missions_lib
 from envs import rollout
+from envs.base import ASSETS, check_physics_options
 from envs.wrappers import AutoReset
 
 SHORT_DRONE = missions_lib.MissionConfig.drone(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
@@ -46,6 +48,48 @@ def test_make_rejects_bad_input():
     envs.make("drone", wings=2)
   with pytest.raises(ValueError, match="control_mode"):
     envs.make("drone", control_mode="fly-by-wire")
+
+
+@pytest.mark.parametrize("vehicle", ["drone", "rover"])
+def test_physics_options_step_like_mjx_defaults(vehicle, tmp_path):
+  """The assets' sparse mass matrix and disabled implicit Euler damping (faster on the GPU) step the vehicle as MJX's
+  defaults do (dense M, implicit damping refactorisation): 50 physics steps (1 s) from a spinning, moving start under
+  constant actuation agree to float32 rounding; and a model that adds joint damping is refused."""
+  import mujoco
+  from mujoco import mjx
+
+  path = os.path.join(ASSETS, f"{vehicle}.xml")
+  fast = mujoco.MjModel.from_xml_path(path)
+  assert fast.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE
+  assert fast.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+  assert not np.any(fast.dof_damping)
+  default = mujoco.MjModel.from_xml_path(path)
+  default.opt.jacobian = mujoco.mjtJacobian.mjJAC_DENSE
+  default.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+
+  def run(m):
+    mx = mjx.put_model(m)
+    d = mjx.make_data(mx)
+    d = d.replace(qvel=jnp.linspace(-1.0, 1.0, m.nv))
+    if m.nu:
+      d = d.replace(ctrl=jnp.array([4.0, 3.5, 3.8, 3.6])[: m.nu])
+    else:
+      d = d.replace(qfrc_applied=jnp.array([10.0, -3.0, 0.5]))
+    d = jax.jit(lambda d: jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), d, None, length=50)[0])(d)
+    return np.asarray(d.qpos), np.asarray(d.qvel)
+
+  (qf, vf), (qd, vd) = run(fast), run(default)
+  assert np.all(np.isfinite(qf)) and np.abs(qd[:2]).max() > 0.2   # it moved
+  np.testing.assert_allclose(qf, qd, rtol=1e-4, atol=1e-4)
+  np.testing.assert_allclose(vf, vd, rtol=1e-4, atol=1e-4)
+
+  src = open(path).read()
+  src = (src.replace('<freejoint name="root"/>', '<joint name="root" type="free" damping="0.5"/>') if vehicle == "drone"
+         else src.replace('<joint name="yaw" type="hinge"', '<joint name="yaw" type="hinge" damping="0.5"'))
+  bad = tmp_path / f"{vehicle}.xml"
+  bad.write_text(src)
+  with pytest.raises(ValueError, match="joint damping needs the implicit Euler damping"):
+    check_physics_options(mujoco.MjModel.from_xml_path(str(bad)), f"{vehicle}.xml")
 
 
 @pytest.mark.parametrize("vehicle", ["drone", "rover"])
