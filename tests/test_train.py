@@ -176,11 +176,13 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
 TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
 
 
-_COMPILES = {"on": False, "secs": []}   # XLA compiles over 1 s while recording (the resumed run below)
+_COMPILES = {"on": False, "secs": []}   # XLA compiles over 5 s while recording (the resumed run below)
+# 5 s: a training phase compiles in 20-90 s on the CPU; the resumed run's own small jits (restore, eval helpers) take up
+# to ~0.5 s on an idle 2-core machine and went over 1 s under the suite's two workers (1.08 s, 2026-11-27).
 
 
 def _on_duration(event, secs, **_):
-  if _COMPILES["on"] and "backend_compile" in event and secs > 1.0:
+  if _COMPILES["on"] and "backend_compile" in event and secs > 5.0:
     _COMPILES["secs"].append(secs)
 
 
