@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import FAST_COMPILE_FLAGS
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -149,10 +150,9 @@ MULTIHOST = textwrap.dedent("""
 
 def _env(devices):
   env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-  # Cheaper XLA:CPU compiles (the programs here are compiled once and run for a few tiny iterations); the fusion
-  # emitters off take ~25 % off a phase's compile.
-  env["XLA_FLAGS"] = (f"--xla_force_host_platform_device_count={devices} --xla_backend_optimization_level=0 "
-                      "--xla_llvm_disable_expensive_passes=true --xla_cpu_use_fusion_emitters=false")
+  # The suite's cheaper XLA:CPU compiles (tests/conftest.py), whatever SPECGUARD_TEST_FAST_COMPILE says: the programs
+  # here are compiled once and run for a few tiny iterations; the fusion emitters off take ~25 % off a phase's compile.
+  env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices} {FAST_COMPILE_FLAGS}"
   return env
 
 
