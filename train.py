@@ -74,6 +74,9 @@ def parse_args(argv=None):
   ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
   ap.add_argument("--no-progress", action="store_true")
   ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+  ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
+                  help="compile phase 2 and the held-out evaluation on background threads while phase 1 compiles "
+                       "and trains (default: on unless the backend is the CPU)")
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")
@@ -143,10 +146,10 @@ def _sweep(members, out, a):
     names = ["_".join(f"{k}{v}" for k, v in point.items()).replace("/", "-") for point, _ in grp]
     if len(grp) > 1:
       summaries = runner.train_sweep([c for _, c in grp], names, out, progress=not a.no_progress,
-                                     export=not a.no_export)
+                                     export=not a.no_export, compile_ahead=a.compile_ahead)
     else:
       summaries = [runner.train(grp[0][1], os.path.join(out, names[0]), progress=not a.no_progress,
-                                export=not a.no_export)]
+                                export=not a.no_export, compile_ahead=a.compile_ahead)]
     for (point, _), s in zip(grp, summaries):
       fm = s["final_train_metrics"].get("2") or s["final_train_metrics"].get("1", {})
       rows.append({**point, "svr": fm.get("svr"), "rsr": fm.get("rsr"), "return": fm.get("return"),
@@ -193,7 +196,7 @@ def main(argv=None):
       _sweep(members, out, a)
       return 0
     s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export,
-                     num_devices=a.devices if a.resume else None)
+                     num_devices=a.devices if a.resume else None, compile_ahead=a.compile_ahead)
   except ValueError as e:
     print(f"\ntrain.py: error: {e}", file=sys.stderr)
     return 2

@@ -116,10 +116,11 @@ def quality(a, steps, devices_list, envs):
     cfg = dataclasses.replace(_cfg(a, envs, d), phase1_steps=steps // 2, phase2_steps=steps - steps // 2,
                               eval_missions=a.eval_missions, checkpoint_every_s=1e9)
     t = time.time()
-    s = runner.train(cfg, os.path.join(a.out, f"quality_d{d}"), progress=False, export=False)
+    s = runner.train(cfg, os.path.join(a.out, f"quality_d{d}"), progress=False, export=False,
+                     compile_ahead=a.compile_ahead)
     fm = s["final_train_metrics"]
     row = {"devices": d, "env_groups": s["env_groups"], "env_steps": s["env_steps"], "wall_s": time.time() - t,
-           "train_wall_s": s["train_wall_s"], "compile_s": s["compile_s"],
+           "train_wall_s": s["train_wall_s"], "compile_s": s["compile_s"], "heldout_wall_s": s.get("heldout_wall_s"),
            "phase1": fm.get("1", {}), "phase2": fm.get("2", {})}
     if "heldout" in s:
       row["heldout"] = {k: {m: v[m] for m in ("svr", "rsr", "collision_rate") if m in v}
@@ -237,6 +238,9 @@ def main(argv=None):
   ap.add_argument("--quality", type=int, metavar="STEPS", help="phase-1+2 run of STEPS env steps per device count")
   ap.add_argument("--quality-envs", type=int, default=16384)
   ap.add_argument("--eval-missions", type=int, default=0, help="held-out missions per setting after --quality runs")
+  ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
+                  help="--quality runs: compile phase 2 and the evaluation ahead (train.py's flag; default: on "
+                       "unless on the CPU)")
   ap.add_argument("--profile", action="store_true", help="jax.profiler trace of one phase-2 call to <out>/trace")
   ap.add_argument("--breakdown", action="store_true", help="per-component timing of one iteration")
   ap.add_argument("--smoke", action="store_true", help="tiny sizes (CPU check)")

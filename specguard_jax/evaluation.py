@@ -235,10 +235,16 @@ def precompile(jobs, *, workers: int = 0) -> dict:
 
   out = {}
   t0 = time.perf_counter()
-  with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
-    for i, ck, fn, dt in pool.map(one, todo):
-      _COMPILED[ck] = fn
-      out[i] = dt
+  if workers == 1:   # on the calling thread (e.g. the trainer's compile-ahead thread, ppo/ahead.py)
+    done = map(one, todo)
+  else:
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=workers)
+    done = pool.map(one, todo)
+  for i, ck, fn, dt in done:
+    _COMPILED[ck] = fn
+    out[i] = dt
+  if workers > 1:
+    pool.shutdown()
   out["wall"] = time.perf_counter() - t0
   return out
 
@@ -249,13 +255,14 @@ def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 
   argument). Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories
   or None: {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K],
   'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
-  timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the same static configuration (clear_cache()
-  frees them)."""
+  timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the
+  same static configuration (clear_cache() frees them); False: compile for this call only (an executable `precompile`
+  made for it is used and dropped)."""
   settings = _as_settings(settings)
   static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj)
   key = jax.random.PRNGKey(seed)
   t0 = time.perf_counter()
-  fn = _COMPILED.get(ck)
+  fn = _COMPILED.get(ck) if cache else _COMPILED.pop(ck, None)   # cache=False: a precompiled one serves once
   if fn is None:   # ahead-of-time compile so compile and flight times are reported apart
     fn = _rollout.lower(policy_params=policy_params, key=key, **static).compile()
     if cache:

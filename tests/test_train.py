@@ -2,10 +2,12 @@
 interrupted + resumed twin that ends bit-identical, the CLI's one-line errors, and a tiny train -> export smoke
 (phase 1 + adversarial phase 2 + ONNX parity) asserting real outcomes."""
 
+import dataclasses
 import json
 import os
 import re
 import shutil
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -13,7 +15,7 @@ import numpy as np
 import pytest
 
 import train as train_cli
-from specguard_jax import export
+from specguard_jax import evaluation, export
 from specguard_jax.ppo import attacker, config, iteration, losses, networks, runner
 
 TINY_PPO = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
@@ -176,14 +178,18 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
 TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
 
 
-_COMPILES = {"on": False, "secs": []}   # XLA compiles over 5 s while recording (the resumed run below)
+_COMPILES = {"on": False, "secs": [], "log": None}   # XLA compiles over 5 s while recording (the resumed run below)
 # 5 s: a training phase compiles in 20-90 s on the CPU; the resumed run's own small jits (restore, eval helpers) take up
 # to ~0.5 s on an idle 2-core machine and went over 1 s under the suite's two workers (1.08 s, 2026-11-27).
 
 
-def _on_duration(event, secs, **_):
-  if _COMPILES["on"] and "backend_compile" in event and secs > 5.0:
+def _on_duration(event, secs, fun_name="", **_):
+  if "backend_compile" not in event:
+    return
+  if _COMPILES["on"] and secs > 5.0:
     _COMPILES["secs"].append(secs)
+  if _COMPILES["log"] is not None:   # every compile, by function and thread (the compile-ahead run below)
+    _COMPILES["log"].append((fun_name, threading.current_thread().name))
 
 
 jax.monitoring.register_event_duration_secs_listener(_on_duration)
@@ -195,7 +201,11 @@ def runs(tmp_path_factory):
   both reuse the same compiled phases (make_phase is cached per config)."""
   root = tmp_path_factory.mktemp("train")
   cfg = tiny(eval_missions=1, alternate_iters=2, **TWO_PHASE)
-  full = runner.train(cfg, str(root / "full"), progress=False)
+  _COMPILES["log"] = []
+  try:   # phase 2 and the held-out evaluation compile on background threads while phase 1 compiles and trains
+    full = runner.train(cfg, str(root / "full"), progress=False, compile_ahead=True)
+  finally:
+    ahead_compiles, _COMPILES["log"] = _COMPILES["log"], None
   part = runner.train(cfg, str(root / "part"), progress=False, export=False, stop_after_calls=3)
   shutil.copytree(root / "part", root / "cut")   # the same stop, for the phase-boundary resume below
   _COMPILES["on"] = True
@@ -203,7 +213,8 @@ def runs(tmp_path_factory):
     resumed = runner.train(cfg, str(root / "part"), resume=True, progress=False)
   finally:
     _COMPILES["on"] = False
-  return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed, resumed_compiles=list(_COMPILES["secs"]))
+  return dict(cfg=cfg, root=root, full=full, part=part, resumed=resumed, resumed_compiles=list(_COMPILES["secs"]),
+              ahead_compiles=ahead_compiles)
 
 
 def _final_sg(cfg, run_dir):
@@ -234,6 +245,37 @@ def test_interrupted_run_resumes_bit_identical(runs):
   f2 = export.load_jax_policy(str(runs["root"] / "part"))
   x = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
   np.testing.assert_array_equal(np.asarray(f1(x)["setpoint"]), np.asarray(f2(x)["setpoint"]))
+
+
+def test_compile_ahead_compiles_phase_2_and_the_evaluation_once_off_the_main_thread(runs):
+  """The full run (compile_ahead=True) compiled phase 2's init and run and the held-out rollout on the compile-ahead
+  thread, and its own calls of them found them compiled (no program compiled twice); the resumed twin, compiled the
+  ordinary way, ends bit-identical to it (test_interrupted_run_resumes_bit_identical)."""
+  log = runs["ahead_compiles"]
+  ahead = lambda name: sorted(t == "specguard-compile-ahead" for f, t in log if f == name)  # noqa: E731
+  assert ahead("jit(run)") == [False, True], log      # phase 1's on the caller's thread, phase 2's ahead
+  assert ahead("jit(init)") == [False, True], log
+  assert ahead("jit(_rollout)") == [True], log
+  env = iteration.eval_env(runs["cfg"])   # the precompiled rollout served the held-out evaluation once, then went
+  assert not any(dict(ck[:-1])["env"] is env for ck in evaluation._COMPILED)
+
+
+def test_sweep_compiles_phase_2_ahead_once(tmp_path):
+  """A vmapped two-phase sweep with compile_ahead: phase 2's (member-batched) init and run compile once, on the
+  compile-ahead thread, and both members train."""
+  cfg = tiny(alternate_iters=2, **TWO_PHASE)
+  _COMPILES["log"] = []
+  try:
+    sw = runner.train_sweep([cfg, dataclasses.replace(cfg, seed=4)], ["a", "b"], str(tmp_path), progress=False,
+                            export=False, compile_ahead=True)
+  finally:
+    log, _COMPILES["log"] = _COMPILES["log"], None
+  big = [t == "specguard-compile-ahead" for f, t in log if f == "jit(<lambda>)"]   # the sweep's init_fn / run_fn
+  assert sorted(big) == [False, False, True, True], log
+  assert sw[0]["env_steps"] == sw[1]["env_steps"] == 4 * 2 * 64
+  a, b = (jax.tree.leaves(m["sg_state"].params) for m in sw)
+  assert all(np.all(np.isfinite(x)) for x in a + b)
+  assert any(not np.array_equal(x, y) for x, y in zip(a, b))   # two seeds, two policies
 
 
 def test_resume_from_the_phase_1_closing_checkpoint(runs):

@@ -380,10 +380,23 @@ def _eval_env(vehicle, worlds, reward, residual, variant, detector, detector_del
                        detector_delay=detector_delay, reconstruction=reconstruction)
 
 
+def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:
+  """The held-out evaluation's rollout arguments (evaluation.precompile's job) for a SpecGuard agent state."""
+  fn = DeterministicPolicy(sg_policy(cfg), cfg.action, tuple(cfg.speeds), cfg.obs_clip)
+  p = {"policy": sg_state.params["policy"], "mean": sg_state.normalizer.mean, "std": sg_state.normalizer.std}
+  return {"env": eval_env(cfg), "policy": fn, "policy_params": p, "missions": missions}
+
+
 def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: int = 10_000) -> dict:
   """Held-out quality of the trained SpecGuard policy (specguard_jax.evaluation) in the run's deployment env."""
   from specguard_jax import evaluation
-  env = eval_env(cfg)
-  fn = DeterministicPolicy(sg_policy(cfg), cfg.action, tuple(cfg.speeds), cfg.obs_clip)
-  p = {"policy": sg_state.params["policy"], "mean": sg_state.normalizer.mean, "std": sg_state.normalizer.std}
-  return evaluation.evaluate(env, fn, p, missions=missions, seed=seed)
+  job = _heldout_job(cfg, sg_state, missions)
+  return evaluation.evaluate(job["env"], job["policy"], job["policy_params"], missions=missions, seed=seed)
+
+
+def precompile_heldout(cfg: TrainConfig, sg_state, missions: int) -> None:
+  """Compile `heldout`'s rollout for an agent state of these shapes (abstract leaves are fine) and keep it for
+  heldout's call (evaluation.precompile); used by the runner's compile-ahead thread (ppo/ahead.py)."""
+  from specguard_jax import evaluation
+  job = _heldout_job(cfg, sg_state, missions)
+  evaluation.precompile([dict(job, settings=evaluation.default_settings())], workers=1)

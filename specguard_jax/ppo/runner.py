@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
@@ -183,12 +184,16 @@ def load_run_config(run_dir: str) -> TrainConfig:
 
 
 def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: bool = True,
-          stop_after_calls: int | None = None, export: bool = True, log=print, num_devices: int | None = None) -> dict:
+          stop_after_calls: int | None = None, export: bool = True, log=print, num_devices: int | None = None,
+          compile_ahead: bool | None = None) -> dict:
   """Train SpecGuard (phase 1 then phase 2) into run_dir; returns the summary dict (also written to summary.json).
 
   resume: continue from run_dir's newest checkpoint (its config.json wins over `cfg`; num_devices may override its
   device count: the checkpoint restores onto any device count dividing its env_groups).  stop_after_calls: stop
   (after checkpointing) once this many compiled calls ran in this process: a deterministic stand-in for a kill.
+  compile_ahead: compile the later phases and the held-out evaluation on background threads while the current
+  phase compiles and trains (ppo/ahead.py); None: on unless the backend is the CPU (where the cores are few and
+  the programs compile in seconds to minutes either way).
   """
   main = distributed.is_main()
   os.makedirs(run_dir, exist_ok=True)
@@ -222,6 +227,12 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   if saved_host is not None:
     host.update(saved_host)
 
+  if compile_ahead is None:
+    compile_ahead = jax.default_backend() != "cpu"
+  ahead = ahead_lib.CompileAhead()
+  if compile_ahead and not host["done"]:
+    _compile_ahead(ahead, cfg, mesh, phases, host["phase_index"], (k_sg, k_aa, k_phase), main)
+
   stop = {"flag": False}
 
   def _on_signal(signum, _frame):
@@ -251,6 +262,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         del prev
         ckpt_step = None
         log(f"[train] resumed at the start of phase {number} from {run_dir}")
+      waited = ahead.wait(f"phase{number}")   # a phase compiling ahead (init and run): wait for it
       fresh = phase.init(k_init, sg_state, aa_state)
       if ckpt_step is not None and saved_host is not None:
         carry = _restore_carry(mgr, ckpt_step, fresh)
@@ -266,7 +278,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         tc = time.time()
         carry, m = phase.run(carry)
         m = distributed.to_host(m)
-        dt = time.time() - tc
+        dt = time.time() - tc + waited   # a phase's first call: its compile, or the wait for its compile ahead
+        waited = 0.0
         host["calls"] += 1
         calls_here += 1
         host["wall_s"] += dt
@@ -337,6 +350,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
       summary["export"] = export_policy(cfg, run_dir, sg_state)
     if cfg.eval_missions > 0:
       te = time.time()
+      ahead.wait("heldout")
       summary["heldout"] = it.heldout(cfg, sg_state, cfg.eval_missions)
       summary["heldout_wall_s"] = time.time() - te
       log(f"[train] held-out ({cfg.eval_missions} missions per setting): " + ", ".join(
@@ -351,6 +365,23 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     if logger is not None:
       logger.close()
     mgr.close()
+
+
+def _compile_ahead(ahead, cfg, mesh, phases, start: int, keys, main: bool) -> None:
+  """Start compiling the phases after phases[start] (init and run) and the held-out evaluation on background
+  threads (ppo/ahead.py). Their inputs are abstract: each phase's agent states as they arrive there (replicated
+  over the mesh, the shapes of a fresh agent's), the evaluation's policy parameters as numpy arrays."""
+  k_sg, k_aa, k_phase = keys
+  first = it.make_phase(cfg, phases[start], mesh)   # built here, not on a thread: make_phase is cached per config
+  n_obs = first.env.observation_size if phases[start] == 1 else first.env.env.observation_size
+  sg = jax.eval_shape(lambda: losses.with_hparams(first.sg.init(k_sg, n_obs), cfg.sg))
+  aa = jax.eval_shape(lambda: losses.with_hparams(first.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa))
+  for number in phases[start + 1:]:
+    phase = it.make_phase(cfg, number, mesh)
+    args = ahead_lib.replicated_spec((jax.random.fold_in(k_phase, number), sg, aa), mesh)
+    ahead.submit(f"phase{number}", ahead_lib.compile_phase, phase, *args)
+  if main and cfg.eval_missions > 0:
+    ahead.submit("heldout", it.precompile_heldout, cfg, sg, cfg.eval_missions)
 
 
 def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
@@ -395,13 +426,14 @@ def _member_states(phase, cfgs, number, k_keys):
 
 
 def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, export: bool = True,
-                log=print) -> list:
+                log=print, compile_ahead: bool | None = None) -> list:
   """Train sweep members that differ only in SWEEP_DATA_KEYS as ONE compiled program per phase: the carry gets a
   leading member axis (vmapped), sharded over the devices (the largest device count dividing the member count);
   each member's hyperparameters live in its optimizer state (losses.HPARAMS), its seed in its keys. Each member
   gets out/<name>/ (config.json, metrics.jsonl, summary.json, policy export, held-out evaluation if asked); no
   checkpoints (a sweep restarts from scratch) and no early convergence stop (members run the full budget).
-  Returns one summary per member."""
+  compile_ahead: as in `train` (phase 2 compiles while phase 1 compiles and trains). Returns one summary per
+  member."""
   import math as _math
   base = it.program_config(cfgs[0])
   for c in cfgs:
@@ -428,12 +460,20 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
   env_steps, wall, compile_s, last, per_phase = 0, 0.0, {}, [{} for _ in cfgs], [{} for _ in cfgs]
   sg_state = aa_state = None
   log(f"[train] sweep of {S} members as one program per phase on {mesh.size} device(s)")
+  ahead = ahead_lib.CompileAhead()
+  if (jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead):
+    for number in phases[1:]:   # each later phase's init and run, on the members' states as they arrive there
+      phase = it.make_phase(base, number, mesh, members=S)
+      spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=msh)  # noqa: E731
+      sg0, aa0, kinit = jax.tree.map(spec, _member_states(phase, cfgs, number, keys))
+      ahead.submit(f"phase{number}", ahead_lib.compile_phase, phase, kinit, sg0, aa0)
   try:
     for number in phases:
       phase = it.make_phase(base, number, mesh, members=S)
       sg0, aa0, kinit = _member_states(phase, cfgs, number, keys)
       if sg_state is None:
         sg_state, aa_state = sg0, aa0
+      waited = ahead.wait(f"phase{number}")
       carry = phase.init(*put((kinit, sg_state, aa_state)))
       calls = -(-phase.iterations // base.iters_per_call)
       total = calls * base.iters_per_call * base.steps_per_iter
@@ -441,7 +481,8 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
         tc = time.time()
         carry, m = phase.run(carry)
         m = distributed.to_host(m)   # [S, K] (gathered where the members span processes)
-        dt = time.time() - tc
+        dt = time.time() - tc + waited
+        waited = 0.0
         wall += dt
         compile_s.setdefault(str(number), dt)
         sps = S * base.iters_per_call * base.steps_per_iter / dt

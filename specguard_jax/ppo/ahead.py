@@ -1,0 +1,84 @@
+"""Compile ahead: a run's later programs (phase 2's init and run, the held-out evaluation's rollout) are compiled on
+background threads while the current phase compiles and trains.
+
+Why: on a GPU a default run spends more time in XLA compiling its three programs, one after the other, than in
+training (BENCHMARKS.md, session 20: 137-187 s of compiles against 9-18 s of training calls). XLA compilation
+releases the GIL, so the programs compile side by side on the host's cores (evaluation.precompile does the same for
+`evaluate.py`). What a thread compiles is exactly what the runner later calls: `jax.jit(f).lower(args).compile()`
+fills the same compile cache that `f(args)` looks up (checked by tests/test_train.py, which counts XLA compiles), so
+the runner's calls are unchanged and only wait (`CompileAhead.wait`) for a program still compiling.
+
+The inputs are abstract (`jax.ShapeDtypeStruct` with the sharding the real value will have): phase n+1's agent
+states reach its init as `distributed.replicate`d arrays, and its run gets init's output, whose shardings are read
+off init's compiled executable.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import threading
+import time
+
+import jax
+
+from specguard_jax.ppo import distributed
+
+
+def _daemon_future(fn, *args) -> concurrent.futures.Future:
+  """fn(*args) on a daemon thread (a run stopped early, e.g. by SIGTERM after its checkpoint, exits without waiting
+  for a compile it no longer needs)."""
+  fut = concurrent.futures.Future()
+
+  def target():
+    if not fut.set_running_or_notify_cancel():
+      return
+    try:
+      fut.set_result(fn(*args))
+    except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
+      fut.set_exception(e)
+  threading.Thread(target=target, name="specguard-compile-ahead", daemon=True).start()
+  return fut
+
+
+class CompileAhead:
+  """Named compile jobs on background threads: submit(name, fn, *args) starts one; wait(name) blocks until it is
+  done (re-raising its error) and returns the seconds waited (0.0 if no such job)."""
+
+  def __init__(self):
+    self._jobs: dict[str, concurrent.futures.Future] = {}
+    self.seconds: dict[str, float] = {}   # name -> compile seconds of the job (its own thread's wall time)
+
+  def submit(self, name: str, fn, *args) -> None:
+    def timed(*a):
+      t0 = time.perf_counter()
+      out = fn(*a)
+      self.seconds[name] = time.perf_counter() - t0
+      return out
+    self._jobs[name] = _daemon_future(timed, *args)
+
+  def wait(self, name: str) -> float:
+    fut = self._jobs.pop(name, None)
+    if fut is None:
+      return 0.0
+    t0 = time.perf_counter()
+    fut.result()
+    return time.perf_counter() - t0
+
+  def pending(self) -> list:
+    return [n for n, f in self._jobs.items() if not f.done()]
+
+
+def replicated_spec(tree, mesh):
+  """Abstract twin of `distributed.replicate(tree, mesh)` (shapes and dtypes of tree's leaves, concrete or not)."""
+  sh = distributed.replicated(mesh)
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh), tree)
+
+
+def compile_phase(phase, key, sg_state, aa_state) -> None:
+  """Compile `phase.init(key, sg_state, aa_state)` and `phase.run` on init's output (all arguments abstract, with
+  their shardings), so the runner's first calls of both find them compiled."""
+  init = phase.init.lower(key, sg_state, aa_state).compile()
+  shapes = jax.eval_shape(phase.init, key, sg_state, aa_state)
+  carry = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh, weak_type=s.weak_type),
+                       shapes, init.output_shardings)
+  phase.run.lower(carry).compile()
