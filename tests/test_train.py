@@ -278,6 +278,37 @@ def test_sweep_compiles_phase_2_ahead_once(tmp_path):
   assert any(not np.array_equal(x, y) for x, y in zip(a, b))   # two seeds, two policies
 
 
+EXIT_MID_COMPILE = """
+import sys, threading, time, jax, jax.numpy as jnp
+from specguard_jax.ppo import ahead
+lowered = threading.Event()   # set when the compile leaves tracing/lowering for XLA
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, secs, **kw: lowered.set() if event.endswith("jaxpr_to_mlir_module_duration") else None)
+def f(x):
+  for i in range(1500):   # a few seconds of XLA:CPU compile (default flags: minutes)
+    x = jnp.tanh(x @ x.T) + i
+  return x
+a = ahead.CompileAhead()
+a.submit("big", lambda: jax.jit(f).lower(jax.ShapeDtypeStruct((32, 32), jnp.float32)).compile())
+lowered.wait(300)
+time.sleep(0.2)
+print("pending", a.pending(), flush=True)
+sys.exit(3)
+"""
+
+
+def test_a_process_exiting_during_a_compile_ahead_exits_cleanly():
+  """A run stopped early (e.g. SIGTERM after its checkpoint) may exit while a later phase still compiles ahead: the
+  process ends with its own exit status once that compile is done (a daemon compile thread made it abort: 134)."""
+  import subprocess
+  import sys
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  r = subprocess.run([sys.executable, "-c", EXIT_MID_COMPILE], capture_output=True, text=True, timeout=600,
+                     env=dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", "")))
+  assert "pending ['big']" in r.stdout, (r.stdout, r.stderr[-2000:])
+  assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
+
+
 def test_resume_from_the_phase_1_closing_checkpoint(runs):
   """Killed after phase 1's closing checkpoint and before phase 2's first save (here: the phase-2 save removed), the
   resumed run starts phase 2 from that checkpoint's agents and ends bit-identical to the uninterrupted run."""

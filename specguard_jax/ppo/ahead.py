@@ -24,9 +24,10 @@ import jax
 from specguard_jax.ppo import distributed
 
 
-def _daemon_future(fn, *args) -> concurrent.futures.Future:
-  """fn(*args) on a daemon thread (a run stopped early, e.g. by SIGTERM after its checkpoint, exits without waiting
-  for a compile it no longer needs)."""
+def _thread_future(fn, *args) -> concurrent.futures.Future:
+  """fn(*args) on a new thread. Not a daemon: an XLA compile cannot be cancelled, and a process that exits while a
+  daemon thread is inside one aborts (C++ `terminate`, exit status 134, seen on jax 0.10.2); so a run stopped early
+  (its checkpoint already written) exits once its compiles end."""
   fut = concurrent.futures.Future()
 
   def target():
@@ -36,7 +37,7 @@ def _daemon_future(fn, *args) -> concurrent.futures.Future:
       fut.set_result(fn(*args))
     except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
       fut.set_exception(e)
-  threading.Thread(target=target, name="specguard-compile-ahead", daemon=True).start()
+  threading.Thread(target=target, name="specguard-compile-ahead", daemon=False).start()
   return fut
 
 
@@ -54,7 +55,7 @@ class CompileAhead:
       out = fn(*a)
       self.seconds[name] = time.perf_counter() - t0
       return out
-    self._jobs[name] = _daemon_future(timed, *args)
+    self._jobs[name] = _thread_future(timed, *args)
 
   def wait(self, name: str) -> float:
     fut = self._jobs.pop(name, None)

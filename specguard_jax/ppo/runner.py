@@ -319,6 +319,9 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
           last_ckpt = time.time()
         if interrupted:
           log(f"\n[train] stopped after {host['calls']} calls; resume with: python train.py --resume {run_dir}")
+          if ahead.pending():
+            log(f"[train] the process exits once its background compiles end ({', '.join(ahead.pending())}); the "
+                "checkpoint is written, so killing it now loses nothing")
           return {"interrupted": True, "run_dir": run_dir, "calls": host["calls"]}
       if bar.tty and progress:
         print(file=sys.stderr)
