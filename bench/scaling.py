@@ -20,6 +20,7 @@ import dataclasses
 import json
 import os
 import sys
+import threading
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -109,17 +110,37 @@ def max_envs(a, start, devices, limit):
   return {"largest_ok": ok, "tried": tried}
 
 
+_COMPILES = []   # (seconds since the run started, function, thread, XLA compile seconds) of the run being timed
+
+
+def _on_compile(event, secs, fun_name="", **_):
+  if event.endswith("backend_compile_duration") and secs > 1.0:
+    _COMPILES.append((round(time.time() - _COMPILES_T0[0], 1), fun_name, threading.current_thread().name,
+                      round(secs, 1)))
+
+
+_COMPILES_T0 = [0.0]
+
+
 def quality(a, steps, devices_list, envs):
-  """The same short phase-1 + phase-2 run (same global batch and seed) on each device count."""
+  """The same short phase-1 + phase-2 run (same global batch and seed) on each device count. Each row has wall_s
+  (the whole run), until_trained_s (wall_s less the held-out evaluation: time to target), train_wall_s (the
+  training calls, compiles and compile waits included) and compiles: every XLA compile over 1 s, with its end time,
+  function, thread and seconds."""
+  jax.monitoring.register_event_duration_secs_listener(_on_compile)
   rows = []
   for d in devices_list:
     cfg = dataclasses.replace(_cfg(a, envs, d), phase1_steps=steps // 2, phase2_steps=steps - steps // 2,
                               eval_missions=a.eval_missions, checkpoint_every_s=1e9)
     t = time.time()
+    _COMPILES.clear()
+    _COMPILES_T0[0] = t
     s = runner.train(cfg, os.path.join(a.out, f"quality_d{d}"), progress=False, export=False,
                      compile_ahead=a.compile_ahead)
     fm = s["final_train_metrics"]
-    row = {"devices": d, "env_groups": s["env_groups"], "env_steps": s["env_steps"], "wall_s": time.time() - t,
+    wall = time.time() - t
+    row = {"devices": d, "env_groups": s["env_groups"], "env_steps": s["env_steps"], "wall_s": wall,
+           "until_trained_s": wall - s.get("heldout_wall_s", 0.0), "compiles": list(_COMPILES),
            "train_wall_s": s["train_wall_s"], "compile_s": s["compile_s"], "heldout_wall_s": s.get("heldout_wall_s"),
            "phase1": fm.get("1", {}), "phase2": fm.get("2", {})}
     if "heldout" in s:
@@ -128,7 +149,8 @@ def quality(a, steps, devices_list, envs):
     rows.append(row)
     print(f"  {d} device(s): return {row['phase2'].get('return', float('nan')):.2f}  SVR "
           f"{row['phase2'].get('svr', float('nan')):.3f}  RSR {row['phase2'].get('rsr', float('nan')):.3f}  "
-          f"training calls {row['train_wall_s']:.0f} s", flush=True)
+          f"training calls {row['train_wall_s']:.0f} s, until trained {row['until_trained_s']:.0f} s; compiles (end s, "
+          f"function, thread, s): {row['compiles']}", flush=True)
   return rows
 
 
