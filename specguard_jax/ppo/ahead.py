@@ -31,8 +31,6 @@ def _thread_future(fn, *args) -> concurrent.futures.Future:
   fut = concurrent.futures.Future()
 
   def target():
-    if not fut.set_running_or_notify_cancel():
-      return
     try:
       fut.set_result(fn(*args))
     except BaseException as e:  # noqa: BLE001 - handed to the waiting thread
@@ -47,15 +45,9 @@ class CompileAhead:
 
   def __init__(self):
     self._jobs: dict[str, concurrent.futures.Future] = {}
-    self.seconds: dict[str, float] = {}   # name -> compile seconds of the job (its own thread's wall time)
 
   def submit(self, name: str, fn, *args) -> None:
-    def timed(*a):
-      t0 = time.perf_counter()
-      out = fn(*a)
-      self.seconds[name] = time.perf_counter() - t0
-      return out
-    self._jobs[name] = _thread_future(timed, *args)
+    self._jobs[name] = _thread_future(fn, *args)
 
   def wait(self, name: str) -> float:
     fut = self._jobs.pop(name, None)
