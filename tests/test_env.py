@@ -219,6 +219,29 @@ def test_autoreset_starts_a_new_mission(drone_env, drone_autoreset):
   assert np.all(np.asarray(s2.info["sim"]["readings"].gps_fresh) == 1.0)
 
 
+def test_next_obs_is_the_next_steps_obs_unless_finished(drone_env, drone_autoreset):
+  """What the trainer's bootstrap_values relies on: under AutoReset, a step's final_obs (before any reset) is
+  bitwise the next step's obs for an env that did not finish, and no episode is truncated before
+  EnvBase.min_truncated_episode_steps() steps."""
+  env, reset, step = drone_autoreset
+  s = reset(jax.random.split(jax.random.PRNGKey(6), 2))
+  limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
+  assert drone_env.min_truncated_episode_steps() * drone_env.dt < float(jnp.min(limit))
+  assert drone_env.min_truncated_episode_steps() >= 250      # 30 s at 10 steps per second, less slack
+  t_end = limit[0] - 0.01    # env 0 is truncated by the first step
+  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))
+  s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+  for t in range(3):
+    s2 = step(s, jnp.zeros((2, 3)))
+    for i in range(2):
+      if float(s2.done[i]) == 0.0:
+        np.testing.assert_array_equal(np.asarray(s2.info["final_obs"][i]), np.asarray(s2.obs[i]))
+      else:
+        assert t == 0 and i == 0 and float(s2.info["truncation"][i]) == 1.0
+        assert not np.array_equal(np.asarray(s2.info["final_obs"][i]), np.asarray(s2.obs[i]))
+    s = s2
+
+
 def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
   """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
   every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""

@@ -41,6 +41,44 @@ def test_gae_bootstraps_truncation_not_termination():
     np.testing.assert_allclose(target, adv + v, rtol=1e-6)
 
 
+@pytest.mark.parametrize("max_trunc", [1, 2])
+def test_bootstrap_values_from_the_next_steps_obs(max_trunc):
+  """iteration.bootstrap_values: V(next_obs) taken from V(obs[t+1]) where the env went on, from the gathered own
+  next_obs where it was truncated (up to max_trunc times per env in steps 0..T-2) and at the last step; GAE's inputs
+  equal the direct 2T-row computation wherever they are used (terminated rows are multiplied by 0)."""
+  T, G, B, n = 9, 2, 5, 3
+  rng = np.random.default_rng(0)
+  obs = rng.normal(size=(T, G, B, n)).astype(np.float32)
+  next_obs = np.concatenate([obs[1:], rng.normal(size=(1, G, B, n)).astype(np.float32)])
+  done = np.zeros((T, G, B), np.float32)
+  term = np.zeros((T, G, B), np.float32)
+  # env (0, 0): truncated at 1 (and at 5 when two fit); (0, 1): terminated at 2; (1, 2): truncated at 7, the last
+  # step before T-1; (1, 3): truncated at T-1 (bootstrapped from next_obs[T-1]); (1, 4): terminated at 0, truncated
+  # at 3
+  done[1, 0, 0] = 1
+  if max_trunc == 2:
+    done[5, 0, 0] = 1
+  done[2, 0, 1] = term[2, 0, 1] = 1
+  done[7, 1, 2] = 1
+  done[T - 1, 1, 3] = 1
+  done[0, 1, 4] = term[0, 1, 4] = 1
+  done[3, 1, 4] = 1
+  finished = done > 0
+  next_obs[:-1][finished[:-1]] = rng.normal(size=(int(finished[:-1].sum()), n))   # a finished env's own last obs
+  value_fn = lambda x: jnp.sum(jnp.sin(3.0 * x), axis=-1) + 0.1 * jnp.sum(x, axis=-1)  # noqa: E731
+  v, nv = iteration.bootstrap_values(value_fn, jnp.asarray(obs), jnp.asarray(next_obs), jnp.asarray(done),
+                                     jnp.asarray(term), max_trunc, 4)
+  np.testing.assert_allclose(v, value_fn(obs), rtol=1e-6, atol=1e-6)
+  used = term == 0
+  np.testing.assert_allclose(np.asarray(nv)[used], np.asarray(value_fn(next_obs))[used], rtol=1e-6, atol=1e-6)
+  assert np.all(np.isfinite(nv))
+  # one truncation fewer than the env had: the second one is (knowingly) taken from the next step's obs
+  if max_trunc == 2:
+    _, nv1 = iteration.bootstrap_values(value_fn, jnp.asarray(obs), jnp.asarray(next_obs), jnp.asarray(done),
+                                        jnp.asarray(term), 1, 4)
+    assert not np.isclose(float(nv1[5, 0, 0]), float(value_fn(next_obs[5, 0, 0])))
+
+
 def test_nan_gradients_never_reach_params():
   cfg = tiny()
   sg, _ = iteration.make_agents(cfg)

@@ -79,6 +79,35 @@ def _iterations(cfg: TrainConfig, phase: int) -> int:
   return max(1, -(-steps // cfg.steps_per_iter))
 
 
+def bootstrap_values(value_fn, obs, next_obs, done, terminated, max_truncations: int, steps_per_pass: int):
+  """(V(obs), V(next_obs)), each [T, *batch], on T + 1 + max_truncations rows per env instead of 2T.
+
+  For an auto-reset rollout, next_obs[t] (the observation step t produced) is obs[t+1] wherever done[t] = 0, so
+  V(next_obs[t]) = V(obs[t+1]) there. Where the env finished: terminated rows are not bootstrapped (GAE multiplies
+  them by 0; they get V(obs[t+1]), finite), truncated rows (done, not terminated) get V of their own next_obs,
+  gathered per env for at most `max_truncations` truncations in steps 0..T-2 (the caller's bound; the env cannot be
+  truncated more often in a rollout), and the last step's always comes from next_obs[T-1].
+  value_fn: [..., n] -> [...]. obs, next_obs: [T, *batch, n]; done, terminated: [T, *batch], 0/1 floats.
+  steps_per_pass: steps of obs per value-network pass (lax.map's batch_size).
+  """
+  T = obs.shape[0]
+  v = jax.lax.map(value_fn, obs, batch_size=steps_per_pass)                 # [T, *batch]
+  trunc = (done[:-1] > 0) & (terminated[:-1] <= 0)                          # [T-1, *batch]
+  t_idx = jnp.arange(T - 1).reshape((T - 1,) + (1,) * (trunc.ndim - 1))
+  rows, picks = [next_obs[-1]], []
+  for _ in range(max_truncations):
+    first = jnp.argmax(trunc, axis=0)                                       # earliest truncation left (0 if none)
+    hit = (t_idx == first[None]) & trunc
+    rows.append(jnp.take_along_axis(next_obs[:-1], first[None, ..., None], axis=0)[0])
+    picks.append(hit)
+    trunc = trunc & ~hit
+  extra = value_fn(jnp.stack(rows))                                         # [1 + max_truncations, *batch]
+  following = v[1:]
+  for k, hit in enumerate(picks):
+    following = jnp.where(hit, extra[1 + k][None], following)
+  return v, jnp.concatenate([following, extra[:1]], axis=0)
+
+
 def make_agents(cfg: TrainConfig):
   """(SG agent, AA agent); their step-size schedules span the whole run's updates."""
   n_sg = (_iterations(cfg, 1) + _iterations(cfg, 2)) * cfg.sg.update_epochs * cfg.sg.num_minibatches
@@ -269,21 +298,30 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     assert tuple(stats) == STAT_KEYS
     return stats
 
-  def values(agent, agent_state, tr, p):
+  # How often one env can be truncated in steps 0..T-2 of a rollout (EnvBase.min_truncated_episode_steps): SG's
+  # next-step values then come from the next step's observations (bootstrap_values).
+  T = cfg.unroll_length
+  max_trunc = -(-(T - 1) // base.min_truncated_episode_steps())
+
+  def values(agent, agent_state, tr, p, shifted: bool):
     """(V(obs), V(next_obs)), each [T, G, B/G], for a rollout's observations [T, G, B/G, n]: the value network
-    run after the rollout on chunks of T / num_minibatches steps (obs and next_obs of a chunk in one batch), so a
-    minibatch's worth of rows per pass instead of two B-row passes inside every env step."""
-    def chunk(x):      # (obs, next_obs) [G, B/G, n] each -> [2, G, B/G]
-      return agent.value_of(agent_state, jnp.stack(x))
+    run after the rollout in a few large passes (2T / num_minibatches steps each), not inside every env step.
+    shifted: next_obs[t] is obs[t+1] wherever the env did not finish (SG's; the attacker's observation holds the
+    next setpoint), so V(next_obs) comes from V(obs) but at truncations (bootstrap_values)."""
+    per_pass = max(1, 2 * (T // p.num_minibatches))
+    value_fn = functools.partial(agent.value_of, agent_state)
     with nets():
-      v = jax.lax.map(chunk, (tr["obs"], tr["next_obs"]), batch_size=max(1, tr["obs"].shape[0] // p.num_minibatches))
+      if shifted and 1 + max_trunc < T:
+        return bootstrap_values(value_fn, tr["obs"], tr["next_obs"], tr["done"], tr["terminated"], max_trunc,
+                                per_pass)
+      v = jax.lax.map(lambda x: value_fn(jnp.stack(x)), (tr["obs"], tr["next_obs"]), batch_size=max(1, per_pass // 2))
     return v[:, 0], v[:, 1]
 
-  def advantages(agent, agent_state, tr, p):
+  def advantages(agent, agent_state, tr, p, shifted: bool):
     """Values and GAE over [T, G, B/G], then [T, G, B/G, ...] -> [T, B, ...] for losses.update (which splits B
     into G); only what the PPO loss reads goes on (losses.ppo_loss)."""
     with jax.named_scope("values"):
-      value, next_value = values(agent, agent_state, tr, p)
+      value, next_value = values(agent, agent_state, tr, p, shifted)
     with jax.named_scope("gae"):
       adv, target = losses.gae(tr["reward"], value, next_value, tr["terminated"], tr["done"], p.gamma, p.gae_lambda)
     batch = {k: tr[k] for k in ("obs", "action", "logp", "mask")}
@@ -307,12 +345,12 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       state = refresh_pool(state)
     with jax.named_scope("episode_stats"):
       stats = jax.tree.map(jnp.sum, totals)
-    sg_batch = advantages(sg, carry.sg, tr["sg"], cfg.sg)
+    sg_batch = advantages(sg, carry.sg, tr["sg"], cfg.sg, shifted=True)
     sg_shape = jax.eval_shape(lambda: upd(sg, carry.sg, sg_batch, k_sg)[1])
     zeros = lambda shape: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shape)
     if adversarial:
       turn = (carry.iteration // cfg.alternate_iters) % 2 if turn is None else turn
-      aa_batch = advantages(aa, carry.aa, tr["aa"], cfg.aa)
+      aa_batch = advantages(aa, carry.aa, tr["aa"], cfg.aa, shifted=False)
       aa_shape = jax.eval_shape(lambda: upd(aa, carry.aa, aa_batch, k_aa)[1])
       sg_new, sg_aux = jax.lax.cond(turn == 0, lambda: upd(sg, carry.sg, sg_batch, k_sg),
                                     lambda: (carry.sg, zeros(sg_shape)))
