@@ -116,7 +116,8 @@ def main(argv=None):
   inputs = {"update": data, "values": obs_values, "acting": obs_acting}
   g_ref = grads_fn(None)(params, data0)
   for cfg in cfgs:
-    name = "xla" if cfg is None else f"kernel {cfg.block}:{cfg.num_warps}:{cfg.num_stages}" + ("" if cfg.bwd_kernel else " xla-bwd")
+    name = "xla" if cfg is None else (f"kernel {cfg.block}:{cfg.num_warps}:{cfg.num_stages}"
+                                      + ("" if cfg.bwd_kernel else " xla-bwd"))
     if args.parts and cfg is not None:
       _parts(cfg, params["p"], xs[0], args.repeats)
     try:

@@ -298,7 +298,7 @@ class RAVEnv(Env):
     """The fewest env steps an episode can last when it ends truncated: truncation is t >= the mission's limit,
     min(max_episode_s, 2 x nominal duration + 30 s) >= min(max_episode_s, 30 s), with t = steps x dt (one step of
     slack for float32 time). The trainer uses it to bound how often one env can be truncated within a rollout
-    (ppo/iteration.py, `bootstrap_values`)."""
+    (ppo/iteration.py, `bootstrap_values`): a subclass that truncates earlier must override it."""
     return max(1, int(np.floor(min(self.config.max_episode_s, 30.0) / self.dt)) - 1)
 
   def step(self, state: State, action: jax.Array) -> State:

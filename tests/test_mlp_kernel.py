@@ -1,6 +1,7 @@
 """The fused MLP kernels (specguard_jax/mlp_kernel.py) in Pallas' interpret mode on the CPU: forward and gradient
 equal `networks.MLP`'s in float32 and, in bfloat16, are closer to float32 than Flax's own bf16 layers; the agents'
-acting and values on the kernel (train.py --fused-mlp) equal the XLA path's to bf16 rounding; bad configs are refused."""
+acting and values on the kernel (train.py --fused-mlp) equal the XLA path's to bf16 rounding; bad configs are
+refused."""
 
 import dataclasses
 
