@@ -171,12 +171,12 @@ def _mlp_bwd(cfg, res, g):
   dt = _dt(cfg)
   rows, k0 = x.shape
   wp, _ = _prepare(cfg, ws, bs)
+  if not cfg.bwd_kernel:
+    return _xla_bwd(cfg, ws, bs, x, acts, g, wp)
   k0p, np_ = wp[0].shape[0], wp[-1].shape[1]
   widths = [w.shape[1] for w in ws[:-1]]
   wts = [w.T for w in wp]
   gp = _pad2(g.astype(jnp.float32), rows, np_)
-  if not cfg.bwd_kernel:
-    return _xla_bwd(cfg, ws, bs, x, acts, g, wp)
   out = _call(functools.partial(_bwd_kernel, n_hidden=len(widths), dt=dt), cfg, rows,
               [gp] + list(acts) + wts, [np_] + widths, [w.shape for w in wts],
               widths + [k0p], widths, [dt] * len(widths) + [jnp.float32])

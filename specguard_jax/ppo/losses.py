@@ -14,6 +14,7 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 from jax.flatten_util import ravel_pytree
 
+from specguard_jax import mlp_kernel
 from specguard_jax.ppo import networks
 from specguard_jax.ppo.config import PPOConfig
 
@@ -62,7 +63,6 @@ class Agent:
   def value_of(self, state: AgentState, obs, normalized=None):
     x = self.normalize(state, obs) if normalized is None else normalized
     if self.value_kernel is not None:
-      from specguard_jax import mlp_kernel
       return mlp_kernel.mlp(state.params["value"], x, self.value_kernel)[..., 0]
     return self.value.apply({"params": state.params["value"]}, x)[..., 0]
 
@@ -88,7 +88,6 @@ def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig
       lr=ppo.lr, frac=frac, ent_coef=ppo.ent_coef, clip_eps=ppo.clip_eps, vf_coef=ppo.vf_coef,
       max_grad_norm=ppo.max_grad_norm)
   if policy.inference_kernel is not None:
-    from specguard_jax import mlp_kernel
     why = mlp_kernel.supported(tuple(value_hidden) + (1,), activation)
     if why:
       raise ValueError(f"the fused MLP kernel cannot run this value net: {why}")

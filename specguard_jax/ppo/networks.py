@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax import mlp_kernel
+
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu, "swish": nn.swish}
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
 """[6, 3] unit moves of the paper's discrete actions {+x, -x, +y, -y, +z, -z} (yaw frame)."""
@@ -74,7 +76,6 @@ class Policy:
     if self.dtype not in DTYPES:
       raise ValueError(f"unknown network dtype {self.dtype!r}; choose one of {', '.join(DTYPES)}")
     if self.inference_kernel is not None:
-      from specguard_jax import mlp_kernel
       why = mlp_kernel.supported(tuple(self.hidden) + (self.n,), self.activation)
       if why:
         raise ValueError(f"the fused MLP kernel cannot run this policy: {why}")
@@ -96,7 +97,6 @@ class Policy:
     """`forward` for acting: on the fused kernel when `inference_kernel` is set."""
     if self.inference_kernel is None:
       return self.forward(params, obs)
-    from specguard_jax import mlp_kernel
     return mlp_kernel.mlp(params["net"], obs, self.inference_kernel)
 
   def sample(self, params, obs, key):
