@@ -58,9 +58,6 @@ def parse_args(argv=None):
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
   ap.add_argument("--fused-ekf", action="store_true", default=None,
                   help="the EKF's covariance work as one fused GPU kernel (faster steps, longer compiles)")
-  ap.add_argument("--fused-mlp", action="store_true", default=None,
-                  help="the rollout's policy and value forward passes on a fused GPU kernel (one GPU, bf16 networks; "
-                       "the PPO update stays in XLA; not yet timed in training, BENCHMARKS.md session 22)")
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")
@@ -100,7 +97,6 @@ def build_config(a):
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
             "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf,
-            "fused_mlp": a.fused_mlp,
             "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:

@@ -201,6 +201,9 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
     tiny(num_envs=5, unroll_length=3)
   with pytest.raises(ValueError, match="unknown config key"):
     config.from_dict({"bogus": 1})
+  assert config.from_dict({"fused_mlp": False}) == config.TrainConfig()   # a session-22 run dir's config.json
+  with pytest.raises(ValueError, match="'fused_mlp' = True is no longer supported"):
+    config.from_dict({"fused_mlp": True})
   if jax.default_backend() != "gpu":
     with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
       tiny(fused_ekf=True)

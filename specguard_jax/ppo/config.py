@@ -105,21 +105,11 @@ class TrainConfig:
   # and tanh in bf16, halving the activations' memory traffic; f32 parameters, optimizer, losses and outputs).
   # Evaluation and the ONNX export stay float32.
   network_dtype: str = "float32"
-  # The rollout's policy and value forward passes (not the PPO update) on the fused MLP kernel
-  # (specguard_jax/mlp_kernel.py): one GPU, bf16 networks, tanh hidden layers of power-of-two widths.
-  fused_mlp: bool = False
 
   def validate(self):
     from envs import worlds as worlds_lib
     if self.fused_ekf and jax.default_backend() != "gpu":
       raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
-    if self.fused_mlp:
-      if jax.default_backend() != "gpu":
-        raise ValueError(f"fused_mlp needs a GPU (the default backend is {jax.default_backend()})")
-      if self.network_dtype != "bfloat16":
-        raise ValueError(f"fused_mlp needs network_dtype bfloat16 (got {self.network_dtype!r})")
-      if (self.num_devices or jax.device_count()) != 1:
-        raise ValueError("fused_mlp runs on one device (a Pallas call has no sharding rule); pass --devices 1")
     if self.vehicle not in VEHICLES:
       raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
     if self.variant not in VARIANTS:
@@ -170,12 +160,23 @@ class TrainConfig:
     return dataclasses.asdict(self)
 
 
+RETIRED_KEYS = {"fused_mlp": (False, "the fused MLP kernel was removed: no faster than XLA in training, "
+                                    "BENCHMARKS.md sessions 22-23")}
+"""Keys older run directories' config.json may hold: {key: (the only value still accepted, why it went)}."""
+
+
 def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
-  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys are one-line errors."""
+  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys are one-line errors, retired
+  keys (RETIRED_KEYS) are skipped at their old default and refused otherwise."""
   base = base or TrainConfig()
   fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
   kw = {}
   for k, v in d.items():
+    if k in RETIRED_KEYS:
+      accepted, why = RETIRED_KEYS[k]
+      if v != accepted:
+        raise ValueError(f"config key {k!r} = {v!r} is no longer supported ({why}); remove it")
+      continue
     if k not in fields:
       raise ValueError(f"unknown config key {k!r}; valid: {', '.join(sorted(fields))}")
     if k in ("sg", "aa"):

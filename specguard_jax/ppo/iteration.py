@@ -27,7 +27,6 @@ from flax import struct
 
 import envs as envs_lib
 from envs.wrappers import AutoReset
-from specguard_jax import mlp_kernel
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
@@ -114,11 +113,10 @@ def make_agents(cfg: TrainConfig):
   n_sg = (_iterations(cfg, 1) + _iterations(cfg, 2)) * cfg.sg.update_epochs * cfg.sg.num_minibatches
   n_aa = _iterations(cfg, 2) * cfg.aa.update_epochs * cfg.aa.num_minibatches
   dt = cfg.network_dtype   # training only: evaluation and the ONNX export run sg_policy(cfg) in float32
-  kernel = mlp_kernel.KernelConfig(dtype=dt) if cfg.fused_mlp else None   # acting / values on the fused kernel
-  sg = losses.make_agent(dataclasses.replace(sg_policy(cfg), dtype=dt, inference_kernel=kernel), tuple(cfg.hidden),
-                         cfg.activation, cfg.sg, n_sg, cfg.obs_clip)
-  aa = losses.make_agent(dataclasses.replace(aa_policy(cfg), dtype=dt, inference_kernel=kernel), (128, 128), "tanh",
-                         cfg.aa, n_aa, cfg.obs_clip)
+  sg = losses.make_agent(dataclasses.replace(sg_policy(cfg), dtype=dt), tuple(cfg.hidden), cfg.activation, cfg.sg,
+                         n_sg, cfg.obs_clip)
+  aa = losses.make_agent(dataclasses.replace(aa_policy(cfg), dtype=dt), (128, 128), "tanh", cfg.aa, n_aa,
+                         cfg.obs_clip)
   return sg, aa
 
 

@@ -14,7 +14,6 @@ from brax.training.acme import running_statistics, specs
 from flax import struct
 from jax.flatten_util import ravel_pytree
 
-from specguard_jax import mlp_kernel
 from specguard_jax.ppo import networks
 from specguard_jax.ppo.config import PPOConfig
 
@@ -36,8 +35,6 @@ class Agent:
   optimizer: Any = struct.field(pytree_node=False)
   ppo: PPOConfig = struct.field(pytree_node=False)
   obs_clip: float = struct.field(pytree_node=False, default=10.0)
-  # mlp_kernel.KernelConfig or None: value_of (the values after a rollout) on the fused kernel; ppo_loss stays in XLA
-  value_kernel: Any = struct.field(pytree_node=False, default=None)
 
   def init(self, key, n_obs: int) -> AgentState:
     k1, k2 = jax.random.split(key)
@@ -62,8 +59,6 @@ class Agent:
 
   def value_of(self, state: AgentState, obs, normalized=None):
     x = self.normalize(state, obs) if normalized is None else normalized
-    if self.value_kernel is not None:
-      return mlp_kernel.mlp(state.params["value"], x, self.value_kernel)[..., 0]
     return self.value.apply({"params": state.params["value"]}, x)[..., 0]
 
 
@@ -81,18 +76,14 @@ def make_agent(policy: networks.Policy, value_hidden, activation, ppo: PPOConfig
                obs_clip: float = 10.0) -> Agent:
   """Agent with Adam (global-norm gradient clipping, constant or linearly decaying step size); lr, ent_coef,
   clip_eps and vf_coef are data in the optimizer state (see HPARAMS). The value network computes in the policy's
-  dtype, and outside the loss on the fused MLP kernel when the policy acts on it (`Policy.inference_kernel`)."""
+  dtype."""
   frac = (optax.linear_schedule(1.0, ppo.lr_end_frac, max(1, total_updates)) if ppo.lr_schedule == "linear"
           else 1.0)
   opt = optax.inject_hyperparams(_adam, static_args=("max_grad_norm",))(
       lr=ppo.lr, frac=frac, ent_coef=ppo.ent_coef, clip_eps=ppo.clip_eps, vf_coef=ppo.vf_coef,
       max_grad_norm=ppo.max_grad_norm)
-  if policy.inference_kernel is not None:
-    why = mlp_kernel.supported(tuple(value_hidden) + (1,), activation)
-    if why:
-      raise ValueError(f"the fused MLP kernel cannot run this value net: {why}")
   return Agent(policy=policy, value=networks.value_module(value_hidden, activation, policy.dtype), optimizer=opt,
-               ppo=ppo, obs_clip=obs_clip, value_kernel=policy.inference_kernel)
+               ppo=ppo, obs_clip=obs_clip)
 
 
 def with_hparams(state: AgentState, ppo: PPOConfig) -> AgentState:

@@ -23,8 +23,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from specguard_jax import mlp_kernel
-
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu, "swish": nn.swish}
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
 """[6, 3] unit moves of the paper's discrete actions {+x, -x, +y, -y, +z, -z} (yaw frame)."""
@@ -64,9 +62,6 @@ class Policy:
   activation: str = "tanh"
   init_log_std: float = -0.5
   dtype: str = "float32"   # the hidden layers' compute dtype (DTYPES); parameters and output layer stay float32
-  # mlp_kernel.KernelConfig or None: acting (sample, mode) runs the net on the fused GPU kernel; the PPO loss
-  # (log_prob_entropy) stays in XLA, where the kernels were slower (BENCHMARKS.md, session 22)
-  inference_kernel: object = None
 
   def __post_init__(self):
     if self.kind not in ACTION_KINDS:
@@ -75,10 +70,6 @@ class Policy:
       raise ValueError(f"unknown activation {self.activation!r}; choose one of {', '.join(ACTIVATIONS)}")
     if self.dtype not in DTYPES:
       raise ValueError(f"unknown network dtype {self.dtype!r}; choose one of {', '.join(DTYPES)}")
-    if self.inference_kernel is not None:
-      why = mlp_kernel.supported(tuple(self.hidden) + (self.n,), self.activation)
-      if why:
-        raise ValueError(f"the fused MLP kernel cannot run this policy: {why}")
 
   def module(self) -> MLP:
     return MLP(tuple(self.hidden) + (self.n,), self.activation, 0.01, self.dtype)
@@ -93,15 +84,9 @@ class Policy:
     """Logits [.., n] (discrete) or Gaussian mean [.., n]."""
     return self.module().apply({"params": params["net"]}, obs)
 
-  def _infer(self, params, obs):
-    """`forward` for acting: on the fused kernel when `inference_kernel` is set."""
-    if self.inference_kernel is None:
-      return self.forward(params, obs)
-    return mlp_kernel.mlp(params["net"], obs, self.inference_kernel)
-
   def sample(self, params, obs, key):
     """(action, log_prob): action int32 [..] (discrete) or float32 [.., n] (gaussian)."""
-    out = self._infer(params, obs)
+    out = self.forward(params, obs)
     if self.kind == "discrete":
       a = jax.random.categorical(key, out)
       return a.astype(jnp.int32), _cat_logp(out, a)
@@ -120,7 +105,7 @@ class Policy:
 
   def mode(self, params, obs):
     """Deterministic action: argmax (discrete) or the mean (gaussian)."""
-    out = self._infer(params, obs)
+    out = self.forward(params, obs)
     return jnp.argmax(out, axis=-1).astype(jnp.int32) if self.kind == "discrete" else out
 
 
