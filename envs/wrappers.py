@@ -97,8 +97,9 @@ class AutoReset(Wrapper):
     return merged
 
   def _take_fresh(self, out: State, pool: State, cursor):
-    """(out with its finished envs replaced by consecutive pool entries from `cursor`, keeping the finished step's
-    reward, done and metrics; [] int32 number of entries taken).
+    """(out with its finished envs replaced by consecutive pool entries from `cursor` (of their pipeline_state only
+    the MJX_INPUT_FIELDS under physics_inputs_only), keeping the finished step's reward, done and metrics; [] int32
+    number of entries taken).
 
     The selects read `done` and the pool index through an optimization barrier and the count comes from the prefix
     sum's last entry: otherwise XLA fused the selects of every state leaf with reductions over `done` into
