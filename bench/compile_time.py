@@ -65,9 +65,6 @@ def _compile_s(fn, *args) -> float:
 
 def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> None:
   """Prints the compile seconds of one training phase's call and of its parts (see the module docstring)."""
-  from brax.envs.wrappers.training import VmapWrapper
-
-  from envs.wrappers import AutoReset
   from specguard_jax.ppo import attacker as attacker_lib
   from specguard_jax.ppo import config as config_lib
   from specguard_jax.ppo import distributed, losses
@@ -84,7 +81,7 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> 
   carry = jax.eval_shape(phase.init, key, sg, aa)
   t_build = time.perf_counter() - t
   rows = {"whole training call (Phase.run)": _compile_s(phase.run, carry)}
-  batched = AutoReset(VmapWrapper(phase.env), refresh_in_step=False)
+  batched = phase.batched   # the trainer's AutoReset(Vmap(env), refresh_in_step=False)
   keys = jax.random.split(key, num_envs)
   state = jax.eval_shape(batched.reset, keys)
   T = cfg.unroll_length
@@ -93,9 +90,8 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> 
       lambda s: jax.lax.scan(lambda c, _: (batched.step(c, act), None), s, None, length=T)[0], state)
   rows["pool refresh"] = _compile_s(lambda s: batched.refresh_pool(s, T), state)
   rows["initial reset (env + pool)"] = _compile_s(batched.reset, keys)
-  n_act = act.shape[-1]
   batch = {"obs": jax.ShapeDtypeStruct((T, num_envs, env.observation_size), jnp.float32),
-           "action": jax.ShapeDtypeStruct((T, num_envs, n_act), jnp.float32)}
+           "action": jax.ShapeDtypeStruct((T, num_envs, phase.env.action_size), jnp.float32)}
   batch.update({k: jax.ShapeDtypeStruct((T, num_envs), jnp.float32)
                 for k in ("logp", "mask", "value", "adv", "target")})
   rows["SG's PPO update"] = _compile_s(lambda st, b, k: losses.update(phase.sg, st, b, k), sg, batch, key)

@@ -188,6 +188,18 @@ def test_nan_step_under_autoreset_without_the_fallback(drone_env, drone_autorese
       assert not np.any(np.isnan(y)), jax.tree_util.keystr(path)
 
 
+def _time_limit(drone_env, s):
+  """[B] s: each env's episode time limit, min(max_episode_s, 2 x nominal duration + 30 s)."""
+  return jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
+
+
+def _truncate_env0_next_step(drone_env, s):
+  """s with env 0 just short of its time limit (and not stalled), so the next step truncates it."""
+  t_end = _time_limit(drone_env, s)[0] - 0.01
+  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))  # no stall
+  return s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+
+
 @pytest.fixture(scope="module")
 def drone_autoreset(drone_env):
   """(AutoReset over 2 drone envs, its jitted reset, its jitted step), compiled once for the tests below."""
@@ -198,11 +210,7 @@ def drone_autoreset(drone_env):
 def test_autoreset_starts_a_new_mission(drone_env, drone_autoreset):
   env, reset, step = drone_autoreset
   s = reset(jax.random.split(jax.random.PRNGKey(5), 2))
-  # Push env 0 to its time limit so the next step truncates it.
-  limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
-  t_end = limit[0] - 0.01
-  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))  # no stall
-  s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+  s = _truncate_env0_next_step(drone_env, s)
   old_wp = np.asarray(s.info["mission"].waypoints)
   s2 = step(s, jnp.zeros((2, 3)))
   assert np.asarray(s2.done).tolist() == [1.0, 0.0]
@@ -225,12 +233,9 @@ def test_next_obs_is_the_next_steps_obs_unless_finished(drone_env, drone_autores
   EnvBase.min_truncated_episode_steps() steps."""
   env, reset, step = drone_autoreset
   s = reset(jax.random.split(jax.random.PRNGKey(6), 2))
-  limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
-  assert drone_env.min_truncated_episode_steps() * drone_env.dt < float(jnp.min(limit))
+  assert drone_env.min_truncated_episode_steps() * drone_env.dt < float(jnp.min(_time_limit(drone_env, s)))
   assert drone_env.min_truncated_episode_steps() >= 250      # 30 s at 10 steps per second, less slack
-  t_end = limit[0] - 0.01    # env 0 is truncated by the first step
-  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))
-  s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+  s = _truncate_env0_next_step(drone_env, s)    # env 0 is truncated by the first step
   for t in range(3):
     s2 = step(s, jnp.zeros((2, 3)))
     for i in range(2):
@@ -273,10 +278,7 @@ def test_autoreset_of_physics_inputs_only_gives_the_same_next_states(drone_env, 
   lean = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2, physics_inputs_only=True)
   lean_step = jax.jit(lean.step)
   s = reset(jax.random.split(jax.random.PRNGKey(5), 2))
-  limit = jnp.minimum(drone_env.config.max_episode_s, 2.0 * s.info["mission"].nominal_duration + 30.0)
-  t_end = limit[0] - 0.01   # env 0 truncated by the first step
-  ep = dict(s.info["episode"], last_progress=s.info["episode"]["last_progress"].at[0].set(t_end))
-  s = s.replace(info=dict(s.info, time=s.info["time"].at[0].set(t_end), episode=ep))
+  s = _truncate_env0_next_step(drone_env, s)   # env 0 truncated by the first step
   a = jnp.zeros((2, 3))
   f1, l1 = full_step(s, a), lean_step(s, a)
   f2, l2 = full_step(f1, a), lean_step(l1, a)
