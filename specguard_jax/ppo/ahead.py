@@ -9,9 +9,8 @@ fills the same compile cache that `f(args)` looks up (checked by tests/test_trai
 the runner's calls are unchanged and only wait (`CompileAhead.wait`) for a program still compiling.
 
 The inputs are abstract (`jax.ShapeDtypeStruct` with the sharding the real value will have): phase n+1's agent
-states reach its init as `distributed.replicate`d arrays, and its run gets init's output, whose shardings are
-init's explicit out_shardings (`Phase.carry_sharding`). So a phase's run compiles side by side with its init, also
-for the phase a run starts with (the caller compiles that one's init, `compile_run` its run).
+states reach its init as `distributed.replicate`d arrays, and its run gets init's output, whose shardings are read
+off init's compiled executable.
 """
 
 from __future__ import annotations
@@ -70,14 +69,9 @@ def replicated_spec(tree, mesh):
 
 def compile_phase(phase, key, sg_state, aa_state) -> None:
   """Compile `phase.init(key, sg_state, aa_state)` and `phase.run` on init's output (all arguments abstract, with
-  their shardings; init's are explicit, `Phase.carry_sharding`), side by side, so the runner's first calls of both
-  find them compiled."""
-  run = _thread_future(compile_run, phase, key, sg_state, aa_state)
-  phase.init.lower(key, sg_state, aa_state).compile()
-  run.result()
-
-
-def compile_run(phase, key, sg_state, aa_state) -> None:
-  """Compile `phase.run` for the carry `phase.init(key, sg_state, aa_state)` will return (arguments abstract or
-  concrete): the runner submits this for the phase it starts with, whose init it compiles and calls meanwhile."""
-  phase.run.lower(phase.abstract_carry(key, sg_state, aa_state)).compile()
+  their shardings), so the runner's first calls of both find them compiled."""
+  init = phase.init.lower(key, sg_state, aa_state).compile()
+  shapes = jax.eval_shape(phase.init, key, sg_state, aa_state)
+  carry = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh, weak_type=s.weak_type),
+                       shapes, init.output_shardings)
+  phase.run.lower(carry).compile()

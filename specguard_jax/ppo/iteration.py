@@ -150,17 +150,6 @@ class Phase:
   iterations: int
   mesh: Any = None
   groups: int = 1
-  # init's out_shardings, a prefix of the Carry: env groups split over the mesh, the rest replicated (a sweep phase:
-  # every leaf split along its member axis)
-  carry_sharding: Any = None
-
-  def abstract_carry(self, key, sg_state, aa_state, weak_types: bool = True) -> Carry:
-    """init's output as ShapeDtypeStructs with the shardings init gives it: what `run` compiles ahead for
-    (ppo/ahead.py) and, without weak types, what a checkpoint is restored onto (runner.abstract_carry)."""
-    shapes = jax.eval_shape(self.init, key, sg_state, aa_state)
-    spec = lambda x, sh: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh,  # noqa: E731
-                                              weak_type=weak_types and x.weak_type)
-    return jax.tree.map(lambda sh, sub: jax.tree.map(lambda x: spec(x, sh), sub), self.carry_sharding, shapes)
 
 
 def program_config(cfg: TrainConfig) -> TrainConfig:
@@ -384,12 +373,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     c, m = jax.lax.scan(body, c, None, length=cfg.iters_per_call)
     return c, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), m)
 
-  # init's output shardings are explicit, so `run` can compile for them while init compiles (ppo/ahead.py)
-  data_sh, rep_sh = distributed.data_sharding(mesh), distributed.replicated(mesh)
   if members:
-    carry_sharding = data_sh
-    msh = functools.partial(distributed.constrain, sharding=data_sh)
-    init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)), out_shardings=carry_sharding)
+    msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
+    init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
     # Members never talk to each other: XLA's SPMD partitioner splits them along the member axis. With the fused EKF
     # kernel (a Pallas call, which has no sharding rule) each device runs its own members explicitly (shard_map).
     spec = jax.sharding.PartitionSpec(distributed.AXIS)
@@ -399,11 +385,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       per_device = jax.shard_map(run_members, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)
     run_fn = jax.jit(lambda c: msh(per_device(msh(c))), donate_argnums=0)
   else:
-    carry_sharding = Carry(sg=rep_sh, aa=rep_sh, env_state=data_sh, ep_return=data_sh, ep_return_aa=data_sh,
-                           rng=rep_sh, iteration=rep_sh)
-    init_fn, run_fn = jax.jit(init, out_shardings=carry_sharding), jax.jit(run, donate_argnums=0)
+    init_fn, run_fn = jax.jit(init), jax.jit(run, donate_argnums=0)
   return Phase(cfg=cfg, number=phase, env=env, batched=batched, sg=sg, aa=aa, init=init_fn, run=run_fn,
-               iterations=_iterations(cfg, phase), mesh=mesh, groups=G, carry_sharding=carry_sharding)
+               iterations=_iterations(cfg, phase), mesh=mesh, groups=G)
 
 
 @dataclasses.dataclass(frozen=True)

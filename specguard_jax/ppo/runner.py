@@ -121,7 +121,12 @@ def _pack(carry) -> dict:
 def abstract_carry(phase, key, sg_state, aa_state):
   """The phase's carry as ShapeDtypeStructs with their shardings (env groups split over the mesh, the rest
   replicated): the target Orbax restores a checkpoint onto."""
-  return phase.abstract_carry(key, sg_state, aa_state, weak_types=False)
+  shapes = jax.eval_shape(phase.init, key, sg_state, aa_state)
+  data, rep = distributed.data_sharding(phase.mesh), distributed.replicated(phase.mesh)
+  split = {"env_state", "ep_return", "ep_return_aa"}
+  return type(shapes)(**{f.name: jax.tree.map(
+      lambda x, sh=(data if f.name in split else rep): jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sh),
+      getattr(shapes, f.name)) for f in dataclasses.fields(shapes)})
 
 
 def _unpack(abstract, packed: dict):
@@ -266,7 +271,6 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         log(f"[train] resumed phase {number} at iteration {int(carry.iteration)} from {run_dir}")
       else:
         carry = fresh
-      waited += ahead.wait(f"phase{number}-run")   # the first phase's run, compiling ahead while init compiled
       total_calls = -(-phase.iterations // cfg.iters_per_call)
       phase_total = total_calls * cfg.iters_per_call * cfg.steps_per_iter
       last_ckpt = time.time()
@@ -367,17 +371,14 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
 
 
 def _compile_ahead(ahead, cfg, mesh, phases, start: int, keys, main: bool) -> None:
-  """Start compiling phases[start]'s run, the phases after it (init and run) and the held-out evaluation on
-  background threads (ppo/ahead.py). Their inputs are abstract: each phase's agent states as they arrive there (replicated
+  """Start compiling the phases after phases[start] (init and run) and the held-out evaluation on background
+  threads (ppo/ahead.py). Their inputs are abstract: each phase's agent states as they arrive there (replicated
   over the mesh, the shapes of a fresh agent's), the evaluation's policy parameters as numpy arrays."""
   k_sg, k_aa, k_phase = keys
   first = it.make_phase(cfg, phases[start], mesh)   # built here, not on a thread: make_phase is cached per config
   n_obs = first.env.observation_size if phases[start] == 1 else first.env.env.observation_size
   sg = jax.eval_shape(lambda: losses.with_hparams(first.sg.init(k_sg, n_obs), cfg.sg))
   aa = jax.eval_shape(lambda: losses.with_hparams(first.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa))
-  # the phase it starts with: its run, while the caller compiles (and calls) its init
-  ahead.submit(f"phase{phases[start]}-run", ahead_lib.compile_run, first,
-               *ahead_lib.replicated_spec((jax.random.fold_in(k_phase, phases[start]), sg, aa), mesh))
   for number in phases[start + 1:]:
     phase = it.make_phase(cfg, number, mesh)
     args = ahead_lib.replicated_spec((jax.random.fold_in(k_phase, number), sg, aa), mesh)
@@ -464,12 +465,11 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
   log(f"[train] sweep of {S} members as one program per phase on {mesh.size} device(s)")
   ahead = ahead_lib.CompileAhead()
   if (jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead):
-    spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=msh)  # noqa: E731
-    for i, number in enumerate(phases):   # the first phase's run (its init compiles on this thread), then each later
-      phase = it.make_phase(base, number, mesh, members=S)   # phase's init and run, on the members' states there
+    for number in phases[1:]:   # each later phase's init and run, on the members' states as they arrive there
+      phase = it.make_phase(base, number, mesh, members=S)
+      spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=msh)  # noqa: E731
       sg0, aa0, kinit = jax.tree.map(spec, _member_states(phase, cfgs, number, keys))
-      ahead.submit(f"phase{number}" + ("-run" if i == 0 else ""),
-                   ahead_lib.compile_run if i == 0 else ahead_lib.compile_phase, phase, kinit, sg0, aa0)
+      ahead.submit(f"phase{number}", ahead_lib.compile_phase, phase, kinit, sg0, aa0)
   try:
     for number in phases:
       phase = it.make_phase(base, number, mesh, members=S)
@@ -478,7 +478,6 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
         sg_state, aa_state = sg0, aa0
       waited = ahead.wait(f"phase{number}")
       carry = phase.init(*put((kinit, sg_state, aa_state)))
-      waited += ahead.wait(f"phase{number}-run")
       calls = -(-phase.iterations // base.iters_per_call)
       total = calls * base.iters_per_call * base.steps_per_iter
       for call in range(calls):
