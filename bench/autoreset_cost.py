@@ -7,7 +7,6 @@ over the unroll).
   python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
   python bench/autoreset_cost.py --envs 65536 --trainer-only --ab-nan-fallback [--fused-ekf]   # A/B: NaN fallback off
   python bench/autoreset_cost.py --envs 65536 --step-only --ab-tick-cond [--fused-ekf]   # A/B: GPS schedule by lax.cond
-  python bench/autoreset_cost.py --envs 16384 65536 --trainer-only --ab-physics-inputs    # A/B: MJX inputs only reset
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -104,9 +103,6 @@ def main():
   p.add_argument("--ab-tick-cond", action="store_true",
                  help="also time Vmap(env).step with the GPS schedule picked per tick by a lax.cond (sessions 9-14) "
                       "instead of the static grouping, and print both first-call (compile) times")
-  p.add_argument("--ab-physics-inputs", action="store_true",
-                 help="also time the trainer's step with AutoReset(physics_inputs_only=True): a finished env takes "
-                      "only the MJX fields a physics step reads (envs.wrappers.MJX_INPUT_FIELDS) from the pool")
   a = p.parse_args()
   import envs
   from brax.envs.wrappers.training import VmapWrapper
@@ -164,8 +160,6 @@ def main():
     variants = {}
     if a.sparse_reset:
       variants["finished envs only"] = sparse_autoreset(AutoReset)(VmapWrapper(env), refresh_in_step=False)
-    if a.ab_physics_inputs:
-      variants["fresh MJX inputs only"] = AutoReset(VmapWrapper(env), refresh_in_step=False, physics_inputs_only=True)
     if env_nf is not None:   # same states after the auto-reset (a NaN-terminated env is replaced either way)
       variants["env without the NaN fallback"] = AutoReset(VmapWrapper(env_nf), refresh_in_step=False)
     # every other (every 64th) env past its time limit, so that the first step ends those episodes and resets them

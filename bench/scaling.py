@@ -5,6 +5,7 @@ quality check, a profiler trace and a per-component breakdown of one training it
   python bench/scaling.py --envs 16384 65536 --per-device --devices 1 2 --out /tmp/scal             # 2 GPUs
   python bench/scaling.py --envs 16384 --per-device --devices 1 2 --fused-ekf --out /tmp/scal        # with the kernel
   python bench/scaling.py --max-envs 262144 --out /tmp/scal        # largest env count that fits (doubling to OOM)
+  XLA_PYTHON_CLIENT_MEM_FRACTION=0.95 python bench/scaling.py --no-throughput --max-envs 524288 --out /tmp/scal
   python bench/scaling.py --quality 20000000 --devices 1 2 --out /tmp/scal   # same steps, 1 vs 2 devices
   python bench/scaling.py --profile --breakdown --envs 65536 --out /tmp/scal
   python bench/scaling.py --smoke --out /tmp/scal                   # tiny sizes on the CPU (checks it runs)
@@ -87,17 +88,19 @@ def _is_oom(e):
   return any(k in s for k in ("RESOURCE_EXHAUSTED", "Out of memory", "out of memory", "OOM", "Resource exhausted"))
 
 
-def max_envs(a, start, devices, limit):
+def max_envs(a, start, devices, limit, on_step=lambda result: None):
   """Double the env count from `start` until a phase-2 call (compile + one call, the run's unroll and
-  iterations per call) fails with an out-of-memory error (or `limit`)."""
+  iterations per call) fails with an out-of-memory error (or `limit`); on_step gets the result so far after each
+  size (a run cut short keeps what it measured)."""
   ok, tried, n = None, [], start
   while n <= limit:
     try:
       sps, first, mem = throughput(argparse.Namespace(**{**vars(a), "calls": 0}), n, devices, 2)
       tried.append({"envs": n, "ok": True, "sps": sps, "first_call_s": first, **mem})
       ok = n
-      print(f"  {n:>9} envs: ok (compile + one call {first:.0f} s, {mem.get('in_use_gb', float('nan')):.1f} GB in "
-            "use)", flush=True)
+      peak = (f", peak {mem['peak_gb']:.1f} GB of the {mem['limit_gb']:.1f} GB the allocator may use"
+              if "peak_gb" in mem else "")   # backends without memory stats (CPU) report none
+      print(f"  {n:>9} envs: ok (compile + one call {first:.0f} s{peak})", flush=True)
     except Exception as e:  # noqa: BLE001
       if not _is_oom(e):
         raise
@@ -106,6 +109,7 @@ def max_envs(a, start, devices, limit):
       break
     finally:
       jax.clear_caches()
+      on_step({"largest_ok": ok, "tried": tried})
     n *= 2
   return {"largest_ok": ok, "tried": tried}
 
@@ -301,7 +305,8 @@ def main(argv=None):
           jax.clear_caches()
   if a.max_envs:
     print(f"\n### Largest env count (phase 2, {max(devices)} device(s))", flush=True)
-    res["max_envs"] = max_envs(a, a.max_envs, max(devices), a.max_envs_limit)
+    res["max_envs"] = max_envs(a, a.max_envs, max(devices), a.max_envs_limit,
+                               on_step=lambda r: (res.update(max_envs=r), save()))
     print(f"largest that ran: {res['max_envs']['largest_ok']}")
     save()
   if a.quality:

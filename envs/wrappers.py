@@ -22,12 +22,6 @@ from brax.envs.base import State, Wrapper
 
 from envs.base import tree_where
 
-MJX_INPUT_FIELDS = ("time", "qpos", "qvel", "act", "history", "plugin_state", "qacc_warmstart", "ctrl", "qfrc_applied",
-                    "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata")
-"""The `mjx.Data` fields a physics step reads: MuJoCo's mjSTATE_INTEGRATION (state, controls, applied forces, equality
-flags, mocap poses, user data and the solver's warm start). Every other field (kinematics, inertia, actuation, qacc,
-sensordata, constraint and contact quantities) is an output that the next `mjx.step` recomputes from these."""
-
 _POOL_KEYS = ("reset_pool", "pool_cursor", "pool_refresh", "reset_key", "last_episode", "final_obs",
               "final_spec_robustness")
 
@@ -39,22 +33,13 @@ class AutoReset(Wrapper):
   metrics; `info['truncation']` is the finished step's, `info['last_episode']` the finished episode's flags,
   `info['final_obs']` the observation the step produced before any reset (for bootstrapping truncated episodes) and
   `info['final_spec_robustness']` the finished episode's per-spec robustness.
-
-  physics_inputs_only: a finished env takes only the MJX_INPUT_FIELDS of its fresh `pipeline_state` (the selected
-  state shrinks from 6.4 to 4.6 kB per env and 282 to 212 leaves for the drone, 5.4 to 4.1 kB for the rover); its
-  other MJX fields (xpos, xmat, qacc, ...) keep the finished episode's values until the new episode's first physics
-  step recomputes them, so the env's next step, and every state after it, is the same as with the full select
-  (tests/test_env.py). For callers that read no MJX output field off a state the auto-reset returned (the envs read
-  qpos and qvel before a physics step, qacc only after it; the trainer reads obs and info).
   """
 
-  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None, refresh_in_step: bool = True,
-               physics_inputs_only: bool = False):
+  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None, refresh_in_step: bool = True):
     super().__init__(env)
     self._pool_size = pool_size
     self._refresh = refresh
     self._refresh_in_step = refresh_in_step
-    self._physics_inputs_only = physics_inputs_only
 
   def _sizes(self, batch):
     pool = self._pool_size or max(8, batch // 8)
@@ -97,9 +82,8 @@ class AutoReset(Wrapper):
     return merged
 
   def _take_fresh(self, out: State, pool: State, cursor):
-    """(out with its finished envs replaced by consecutive pool entries from `cursor` (of their pipeline_state only
-    the MJX_INPUT_FIELDS under physics_inputs_only), keeping the finished step's reward, done and metrics; [] int32
-    number of entries taken).
+    """(out with its finished envs replaced by consecutive pool entries from `cursor`, keeping the finished step's
+    reward, done and metrics; [] int32 number of entries taken).
 
     The selects read `done` and the pool index through an optimization barrier and the count comes from the prefix
     sum's last entry: otherwise XLA fused the selects of every state leaf with reductions over `done` into
@@ -108,15 +92,9 @@ class AutoReset(Wrapper):
     done = out.done > 0
     rank = jnp.cumsum(done.astype(jnp.int32)) - 1
     sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
-    fresh = jax.tree.map(lambda x: x[idx], pool)   # gathers of leaves the select does not read are dead code
-    fresh = fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics)
-    if not self._physics_inputs_only:
-      return tree_where(sel, fresh, out), rank[-1] + 1
-    names = [n for n in MJX_INPUT_FIELDS if hasattr(out.pipeline_state, n)]
-    inputs = tree_where(sel, {n: getattr(fresh.pipeline_state, n) for n in names},
-                        {n: getattr(out.pipeline_state, n) for n in names})
-    merged = tree_where(sel, fresh.replace(pipeline_state=None), out.replace(pipeline_state=None))
-    return merged.replace(pipeline_state=out.pipeline_state.replace(**inputs)), rank[-1] + 1
+    fresh = jax.tree.map(lambda x: x[idx], pool)
+    merged = tree_where(sel, fresh.replace(reward=out.reward, done=out.done, metrics=out.metrics), out)
+    return merged, rank[-1] + 1
 
   def refresh_pool(self, state: State, steps: int) -> State:
     """Regenerates the pool entries `steps` env steps of in-step refreshing would have (min(pool, refresh x steps),

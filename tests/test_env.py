@@ -13,7 +13,7 @@ import envs
 from envs import missions as missions_lib
 from envs import rollout
 from envs.base import ASSETS, check_physics_options
-from envs.wrappers import MJX_INPUT_FIELDS, AutoReset
+from envs.wrappers import AutoReset
 
 SHORT_DRONE = missions_lib.MissionConfig.drone(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
 SHORT_ROVER = missions_lib.MissionConfig.rover(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
@@ -268,34 +268,6 @@ def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
                                err_msg=name)
   np.testing.assert_allclose(np.asarray(out_skip.pipeline_state.qpos), np.asarray(out_full.pipeline_state.qpos),
                              rtol=1e-6, atol=1e-7)
-
-
-def test_autoreset_of_physics_inputs_only_gives_the_same_next_states(drone_env, drone_autoreset):
-  """AutoReset(physics_inputs_only=True) takes only MJX_INPUT_FIELDS of the fresh pipeline_state: right after the
-  reset the finished env's derived MJX fields (xpos, ...) are the old episode's, everything else is the full
-  select's; one step later every leaf of every env equals the full select's."""
-  _, reset, full_step = drone_autoreset
-  lean = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2, physics_inputs_only=True)
-  lean_step = jax.jit(lean.step)
-  s = reset(jax.random.split(jax.random.PRNGKey(5), 2))
-  s = _truncate_env0_next_step(drone_env, s)   # env 0 truncated by the first step
-  a = jnp.zeros((2, 3))
-  f1, l1 = full_step(s, a), lean_step(s, a)
-  f2, l2 = full_step(f1, a), lean_step(l1, a)
-  assert np.asarray(f1.done).tolist() == [1.0, 0.0]
-  derived = [f.name for f in dataclasses.fields(f1.pipeline_state) if f.name not in MJX_INPUT_FIELDS]
-  assert "xpos" in derived and "qpos" not in derived
-  # right after the reset: the physics inputs are the fresh episode's, the derived fields still the old one's
-  for name in MJX_INPUT_FIELDS:
-    np.testing.assert_array_equal(np.asarray(getattr(f1.pipeline_state, name)),
-                                  np.asarray(getattr(l1.pipeline_state, name)), err_msg=name)
-  assert not np.allclose(np.asarray(f1.pipeline_state.xpos[0]), np.asarray(l1.pipeline_state.xpos[0]))
-  np.testing.assert_array_equal(np.asarray(f1.pipeline_state.xpos[1]), np.asarray(l1.pipeline_state.xpos[1]))
-  for x, y in zip(jax.tree.leaves(f1.replace(pipeline_state=None)), jax.tree.leaves(l1.replace(pipeline_state=None))):
-    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  # one step later: the same state, leaf for leaf
-  for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(f2)[0], jax.tree.leaves(l2)):
-    np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=jax.tree_util.keystr(path))
 
 
 def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
