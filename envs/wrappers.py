@@ -48,9 +48,11 @@ class AutoReset(Wrapper):
   def reset(self, rng: jax.Array) -> State:
     batch = rng.shape[0]
     pool_n, _ = self._sizes(batch)
-    state = self.env.reset(rng)
     k_pool, k_next = jax.random.split(jax.random.fold_in(rng[0], 0x5eed))
-    pool = self.env.reset(jax.random.split(k_pool, pool_n))
+    # the envs and the pool in one vmapped reset (each env's state depends on its key only): one copy of the reset
+    # program for XLA to compile, not one per batch size
+    both = self.env.reset(jnp.concatenate([rng, jax.random.split(k_pool, pool_n)]))
+    state, pool = jax.tree.map(lambda x: x[:batch], both), jax.tree.map(lambda x: x[batch:], both)
     info = dict(state.info, reset_pool=pool, pool_cursor=jnp.zeros((), jnp.int32),
                 pool_refresh=jnp.zeros((), jnp.int32), reset_key=k_next, last_episode=state.info["episode"],
                 final_obs=state.obs, final_spec_robustness=state.info["spec_robustness"])
