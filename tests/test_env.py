@@ -207,6 +207,22 @@ def drone_autoreset(drone_env):
   return env, jax.jit(env.reset), jax.jit(env.step)
 
 
+def test_autoreset_reset_is_the_envs_and_the_pool_reset_apart(drone_env, drone_autoreset):
+  """AutoReset.reset resets the envs and the pool in one vmapped call: each env and pool entry is what resetting it
+  alone from its key gives (the keys, and so a seed's episodes, are unchanged), to float rounding."""
+  _, reset, _ = drone_autoreset
+  keys = jax.random.split(jax.random.PRNGKey(5), 2)
+  s = reset(keys)
+  alone = jax.jit(VmapWrapper(drone_env).reset)
+  k_pool, _ = jax.random.split(jax.random.fold_in(keys[0], 0x5eed))
+  envs = alone(keys)
+  for got, want in ((s.replace(info={k: v for k, v in s.info.items() if k in envs.info}), envs),
+                    (s.info["reset_pool"], alone(jax.random.split(k_pool, 4)))):
+    for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(want)[0], jax.tree.leaves(got)):
+      np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-6, atol=1e-5,
+                                 err_msg=jax.tree_util.keystr(path))
+
+
 def test_autoreset_starts_a_new_mission(drone_env, drone_autoreset):
   env, reset, step = drone_autoreset
   s = reset(jax.random.split(jax.random.PRNGKey(5), 2))
