@@ -91,7 +91,7 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> 
   rows["pool refresh"] = _compile_s(lambda s: batched.refresh_pool(s, T), state)
   rows["initial reset (env + pool)"] = _compile_s(batched.reset, keys)
   batch = {"obs": jax.ShapeDtypeStruct((T, num_envs, env.observation_size), jnp.float32),
-           "action": jax.ShapeDtypeStruct((T, num_envs, phase.env.action_size), jnp.float32)}
+           "action": jax.ShapeDtypeStruct((T, num_envs, env.action_size), jnp.float32)}   # SG's actions
   batch.update({k: jax.ShapeDtypeStruct((T, num_envs), jnp.float32)
                 for k in ("logp", "mask", "value", "adv", "target")})
   rows["SG's PPO update"] = _compile_s(lambda st, b, k: losses.update(phase.sg, st, b, k), sg, batch, key)
