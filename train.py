@@ -24,6 +24,28 @@ import time
 from specguard_jax.types import SENSOR_NAMES
 
 
+DETERMINISTIC_XLA_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def request_deterministic_gpu_ops(environ=os.environ):
+  """Adds XLA's deterministic-ops flag to environ's XLA_FLAGS (read once, when JAX starts its backend).
+
+  Why (BENCHMARKS.md session 25): XLA's autotuner picks GPU kernels by timing them as it compiles, so two cold compiles
+  of one run can round differently; this flag makes them agree (H100: three runs, two compiled cold, bit-identical)
+  at -29 % env steps/s. Raises ValueError when the backend has already started (the flag would silently do nothing)
+  or when XLA_FLAGS already turns the option off."""
+  flags = environ.get("XLA_FLAGS", "")
+  if "--xla_gpu_deterministic_ops" in flags:
+    if DETERMINISTIC_XLA_FLAG not in flags.split():
+      raise ValueError(f"--deterministic-gpu conflicts with XLA_FLAGS={flags!r}")
+    return
+  from jax._src import xla_bridge
+  if xla_bridge.backends_are_initialized():
+    raise ValueError("--deterministic-gpu must come before JAX starts its backend "
+                     f"(in-process callers: set XLA_FLAGS={DETERMINISTIC_XLA_FLAG} before using JAX)")
+  environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_XLA_FLAG}".strip()
+
+
 def _csv(s):
   return tuple(x for x in s.split(",") if x)
 
@@ -77,6 +99,10 @@ def parse_args(argv=None):
   ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
                   help="compile phase 2 and the held-out evaluation on background threads while phase 1 compiles "
                        "and trains (default: on unless the backend is the CPU)")
+  ap.add_argument("--deterministic-gpu", action="store_true",
+                  help="XLA's deterministic GPU ops (XLA_FLAGS=%s): a cold-compiled GPU run repeats bit for bit "
+                       "(without it only a run reusing the compile cache's programs does); H100: -29 %% env steps/s"
+                       % DETERMINISTIC_XLA_FLAG)
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")
@@ -175,6 +201,8 @@ def main(argv=None):
   from specguard_jax import compile_cache
   from specguard_jax.ppo import distributed   # importing runner starts the backend: join the processes first
   try:
+    if a.deterministic_gpu:
+      request_deterministic_gpu_ops()
     distributed.initialize(a.coordinator, a.num_processes, a.process_id)
     compile_cache.enable(a.compile_cache)
     from specguard_jax.ppo import runner

@@ -216,6 +216,34 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
   assert "not a run directory" in capsys.readouterr().err
 
 
+def test_deterministic_gpu_flag_reaches_xla_before_the_backend_starts(tmp_path):
+  """--deterministic-gpu puts XLA's deterministic-ops flag into XLA_FLAGS before anything of train.main starts JAX's
+  backend (a fresh process: XLA then parses it, and would abort on a flag it does not know); an in-process caller
+  whose backend already runs, or whose XLA_FLAGS turn the option off, gets a one-line error instead of a no-op."""
+  import subprocess
+  import sys
+  code = ("import os, sys, jax, train\n"
+          f"rc = train.main(['--deterministic-gpu', '--config', {str(tmp_path / 'missing.json')!r}])\n"
+          "print(rc, os.environ['XLA_FLAGS'].split(), jax.numpy.ones(3).sum())\n")
+  env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_cpu_enable_fast_math=false")
+  out = subprocess.run([sys.executable, "-c", code], cwd=os.path.dirname(os.path.dirname(__file__)), env=env,
+                       capture_output=True, text=True, timeout=300)
+  assert out.returncode == 0, out.stderr[-2000:]
+  assert out.stdout.strip().splitlines()[-1] == ("2 ['--xla_cpu_enable_fast_math=false', "
+                                                 f"'{train_cli.DETERMINISTIC_XLA_FLAG}'] 3.0"), out.stdout
+  assert "cannot read config file" in out.stderr   # the request came first and did not refuse
+  jax.devices()
+  environ = {}
+  with pytest.raises(ValueError, match="before JAX starts its backend"):   # this process's backend runs already
+    train_cli.request_deterministic_gpu_ops(environ)
+  assert environ == {}
+  environ = {"XLA_FLAGS": train_cli.DETERMINISTIC_XLA_FLAG}
+  train_cli.request_deterministic_gpu_ops(environ)                 # already there: nothing to do, nothing to refuse
+  assert environ == {"XLA_FLAGS": train_cli.DETERMINISTIC_XLA_FLAG}
+  with pytest.raises(ValueError, match="conflicts with XLA_FLAGS"):
+    train_cli.request_deterministic_gpu_ops({"XLA_FLAGS": "--xla_gpu_deterministic_ops=false"})
+
+
 TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
 
 

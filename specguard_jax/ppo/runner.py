@@ -345,7 +345,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
                "final_train_metrics": {str(k): v for k, v in summary_phase.items()},
                "device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(),
                "devices": mesh.size, "processes": jax.process_count(), "env_groups": cfg.env_groups,
-               "date": time.strftime("%Y-%m-%d")}
+               "xla_flags": os.environ.get("XLA_FLAGS", ""), "date": time.strftime("%Y-%m-%d")}
     if not main:
       distributed.barrier("specguard_train_end")   # wait for process 0's export and evaluation
       return summary
@@ -512,7 +512,8 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
       summ = {"run_dir": os.path.abspath(d), "config": c.to_dict(), "env_steps": env_steps, "train_wall_s": wall,
               "compile_s": compile_s, "sweep_members": S, "devices": mesh.size,
               "final_train_metrics": per_phase[s],
-              "backend": jax.default_backend(), "date": time.strftime("%Y-%m-%d")}
+              "backend": jax.default_backend(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+              "date": time.strftime("%Y-%m-%d")}
       if main and export:
         summ["export"] = export_policy(c, d, sg_s)
       if main and c.eval_missions > 0:
