@@ -496,13 +496,13 @@ class RAVEnv(Env):
     # While landing the leg is last waypoint -> landing point (envs.missions.mission_leg, target >= n).
     q = worlds_lib.world_queries(world, mission, pos, jnp.where(landing, mission.n_waypoints, nav.target))
     vel = truth.vel
-    speed_xy = jnp.linalg.norm(vel[:2])
+    speed_xy = math3d.norm(vel[:2])
     alt = truth.pos[2] - self._ground_offset()
     last = mission.n_waypoints - 1
     wp = mission.waypoints
-    near_target = jnp.linalg.norm((wp[nav.target] - truth.pos)[:2]) < self._nav_params().turn_zone * \
+    near_target = math3d.norm((wp[nav.target] - truth.pos)[:2]) < self._nav_params().turn_zone * \
         mission.acceptance_radius
-    near_start = jnp.linalg.norm((nav.leg_start - truth.pos)[:2]) < self._nav_params().turn_zone * \
+    near_start = math3d.norm((nav.leg_start - truth.pos)[:2]) < self._nav_params().turn_zone * \
         mission.acceptance_radius
     corner_ahead = near_target & (nav.target < last) & (nav.target != mission.loiter_wp)
     corner_behind = near_start & (nav.target > 0)
@@ -511,7 +511,7 @@ class RAVEnv(Env):
     tko_window = (phase == nav_lib.TAKEOFF) & (alt >= 1.5) & (alt <= mission.takeoff_alt - 3.0)
     f = lambda b: b.astype(jnp.float32)
     slack = jnp.where(phase == nav_lib.DONE, 1e3, mission.deadline[nav.target] - nav.time)
-    loiter_dev = jnp.where(phase == nav_lib.LOITER, jnp.linalg.norm((wp[nav.target] - truth.pos)[:2]), 0.0)
+    loiter_dev = jnp.where(phase == nav_lib.LOITER, math3d.norm((wp[nav.target] - truth.pos)[:2]), 0.0)
     s = {
         "obstacle_distance": q["obstacle_distance"], "path_deviation": q["path_deviation"], "altitude": alt,
         "dist_wp": q["dist_wp"], "dist_final": q["dist_final"], "wp_slack": slack,
@@ -529,9 +529,9 @@ class RAVEnv(Env):
   def _goal_distance(self, mission, truth, nav):
     """Distance (m) to what the navigator is heading for: take-off point, target waypoint or landing point."""
     wp = mission.waypoints[nav.target]
-    goal = jnp.where(nav.phase == nav_lib.TAKEOFF, mission.home.at[2].set(mission.takeoff_alt), wp)
-    goal = jnp.where(nav.phase == nav_lib.DESCENT, wp.at[2].set(0.0), goal)
-    return jnp.linalg.norm(self._query_pos(goal) - self._query_pos(truth.pos))
+    goal = jnp.where(nav.phase == nav_lib.TAKEOFF, math3d.with_component(mission.home, 2, mission.takeoff_alt), wp)
+    goal = jnp.where(nav.phase == nav_lib.DESCENT, math3d.with_component(wp, 2, 0.0), goal)
+    return math3d.norm(self._query_pos(goal) - self._query_pos(truth.pos))
 
   def _observation(self, world, mission, sim) -> jax.Array:
     """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
@@ -544,19 +544,19 @@ class RAVEnv(Env):
       pos, vel, acc, euler = x[0:3], x[3:6], x[6:9], x[9:12]
     else:
       pos, vel, euler = ekf.pos, ekf.vel, ekf_lib.ekf_euler(ekf)
-      acc = math3d.quat_to_rot(ekf.quat) @ (readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
+      acc = math3d.matvec(math3d.quat_to_rot(ekf.quat), readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
     wp = mission.waypoints
     target = wp[nav.target]
     nxt = wp[jnp.minimum(nav.target + 1, mission.n_waypoints - 1)]
     leg_next = nxt - target
-    leg_next = leg_next / (jnp.linalg.norm(leg_next) + 1e-6)
+    leg_next = leg_next / (math3d.norm(leg_next) + 1e-6)
     qpos = self._query_pos(pos)
     d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_sdf(world, p))(qpos)
     q = worlds_lib.world_queries(world, mission, qpos, nav.target)
     obs = jnp.concatenate([
         pos - target, vel, acc, euler, leg_next, -g_obs,
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
-                   pos[2] - self._ground_offset(), jnp.linalg.norm(vel[:2]),
+                   pos[2] - self._ground_offset(), math3d.norm(vel[:2]),
                    jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
     return obs.astype(jnp.float32)
 
@@ -566,7 +566,7 @@ class RAVEnv(Env):
     if self.config.override_frame == "body":
       est = sim["recon"].shadow if self.config.reconstruction else sim["ekf"]
       yaw = ekf_lib.ekf_euler(est)[2]
-      xy = math3d.yaw_rot2(yaw) @ a[:2]
+      xy = math3d.matvec(math3d.yaw_rot2(yaw), a[:2])
       a = jnp.concatenate([xy, a[2:3]])
     return jnp.nan_to_num(a)
 

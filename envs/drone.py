@@ -86,7 +86,7 @@ class DroneEnv(RAVEnv):
     ekf, readings, nav, veh, dr = sim["ekf"], sim["readings"], sim["nav"], sim["vehicle"], sim["dr"]
     # ---- autopilot ----
     yaw_est = ekf_lib.ekf_euler(ekf)[2]
-    cruising = (nav.phase == nav_lib.CRUISE) & (jnp.linalg.norm(leg_dir[:2]) > 0.3)
+    cruising = (nav.phase == nav_lib.CRUISE) & (math3d.norm(leg_dir[:2]) > 0.3)
     yaw_hold = jnp.where(nav.phase == nav_lib.TAKEOFF, jnp.where(nav.time <= dt, yaw_est, veh["yaw_hold"]),
                          veh["yaw_hold"])
     yaw_sp = jnp.where(cruising, jnp.arctan2(leg_dir[1], leg_dir[0]), yaw_hold)
@@ -98,7 +98,7 @@ class DroneEnv(RAVEnv):
     thrusts = rotors * dr["thrust_gain"]
     v = data.qvel[:3]
     v_rel = v - (dr["wind"] + sim["gust"])
-    drag = -(DRAG_LIN * v_rel + DRAG_QUAD * jnp.linalg.norm(v_rel) * v_rel) * dr["drag_scale"]
+    drag = -(DRAG_LIN * v_rel + DRAG_QUAD * math3d.norm(v_rel) * v_rel) * dr["drag_scale"]
     rot_drag = -DRAG_ROT * data.qvel[3:6]
     data = data.replace(ctrl=thrusts, qfrc_applied=jnp.concatenate([drag, rot_drag]))
     with jax.named_scope("physics"):
@@ -107,14 +107,14 @@ class DroneEnv(RAVEnv):
     z, vz = data.qpos[2], data.qvel[2]
     below = z <= GROUND_Z
     weight = self.airframe.mass * dr["mass_scale"] * 9.81
-    resting = below & (jnp.sum(thrusts) < weight)
-    impact = below & ~veh["on_ground"] & ((vz < -2.5) | (jnp.linalg.norm(data.qvel[:2]) > 2.0))
+    resting = below & (sum(thrusts[i] for i in range(thrusts.shape[0])) < weight)
+    impact = below & ~veh["on_ground"] & ((vz < -2.5) | (math3d.norm(data.qvel[:2]) > 2.0))
     unplanned = below & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
     yaw = math3d.quat_to_euler(data.qpos[3:7])[2]
     level = math3d.euler_to_quat(jnp.stack([0.0, 0.0, yaw]))
-    qpos = data.qpos.at[2].set(jnp.maximum(z, GROUND_Z))
-    qpos = jnp.where(resting, qpos.at[3:7].set(level), qpos)
-    qvel = data.qvel.at[2].set(jnp.where(below, jnp.maximum(vz, 0.0), vz))
+    qpos = math3d.with_component(data.qpos, 2, jnp.maximum(z, GROUND_Z))
+    qpos = jnp.where(resting, jnp.concatenate([qpos[:3], level]), qpos)
+    qvel = math3d.with_component(data.qvel, 2, jnp.where(below, jnp.maximum(vz, 0.0), vz))
     qvel = jnp.where(resting, jnp.zeros(6), qvel)
     acc = jnp.where(resting, jnp.zeros(3), data.qacc[:3])
     data = data.replace(qpos=qpos, qvel=qvel)

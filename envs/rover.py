@@ -50,7 +50,7 @@ class RoverEnv(RAVEnv):
     return nav_lib.NavParams(planar=True, acc_brake=2.0, acc_turn=3.0)
 
   def _query_pos(self, pos):
-    return pos.at[2].set(0.0)
+    return math3d.with_component(pos, 2, 0.0)
 
   def _ground_offset(self):
     return BODY_Z

@@ -46,7 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from specguard_jax.math3d import euler_to_quat, quat_mul, quat_to_euler, quat_to_rot, wrap_angle
+from specguard_jax.math3d import (dot, euler_to_quat, matvec, matvec_t, norm, quat_mul, quat_to_euler, quat_to_rot,
+                                  with_component, wrap_angle)
 from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
 from specguard_jax.types import SensorReadings
 
@@ -162,7 +163,7 @@ def _skew(v):
 
 def _rotvec_to_quat(v):
   """[3] rotation vector (rad) -> [4] unit quaternion; smooth at 0."""
-  a2 = jnp.sum(v * v)
+  a2 = dot(v, v)
   small = a2 < 1e-8
   a = jnp.sqrt(jnp.where(small, 1.0, a2))
   s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
@@ -171,7 +172,7 @@ def _rotvec_to_quat(v):
 
 
 def _normalize_quat(q):
-  n = jnp.linalg.norm(q)
+  n = norm(q)
   ok = jnp.isfinite(n) & (n > 1e-6)
   return jnp.where(ok, q / jnp.where(ok, n, 1.0), jnp.array([1.0, 0.0, 0.0, 0.0]))
 
@@ -264,10 +265,11 @@ def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
   # the IMU sample stands for the interval ending now: rotate the specific force with the mid-interval attitude
   quat = _normalize_quat(quat_mul(s.quat, _rotvec_to_quat(w * dt)))
   r = quat_to_rot(quat_mul(s.quat, _rotvec_to_quat(0.5 * w * dt)))
-  acc_w = r @ a + jnp.array([0.0, 0.0, -GRAVITY])
+  ra = matvec(r, a)
+  acc_w = ra + jnp.array([0.0, 0.0, -GRAVITY])
   pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
   vel = s.vel + acc_w * dt
-  return s.replace(pos=pos, vel=vel, quat=quat), -_skew(r @ a) * dt, -r * dt
+  return s.replace(pos=pos, vel=vel, quat=quat), -_skew(ra) * dt, -r * dt
 
 
 def _process_noise(cfg: EKFConfig, dt, xp=jnp):
@@ -329,7 +331,7 @@ _H_COLS = tuple(sorted(set(sum(_H_SUPPORT, ()))))
 
 def _observe(cfg: EKFConfig, pos, vel, r):
   """Predicted observation rows [13] (order `_ROWS`) from position, velocity and rotation body -> world."""
-  vb = r.T @ vel
+  vb = matvec_t(r, vel)
   flow = vb[:2] / jnp.maximum(pos[2], cfg.flow_min_height)
   yaw = jnp.arctan2(r[1, 0], r[0, 0])
   return jnp.concatenate([pos, vel, pos[2:3], yaw[None], flow, vb[0:1], vb[1:3]])
@@ -352,8 +354,8 @@ def _linearise(cfg: EKFConfig, s: EKFState):
   r = quat_to_rot(s.quat)
   pred = _observe(cfg, s.pos, s.vel, r)
   rt = r.T
-  vb = rt @ s.vel
-  dvb_dv, dvb_dth = rt, rt @ _skew(s.vel)                         # [3, 3] each
+  vb = matvec_t(r, s.vel)
+  dvb_dv, dvb_dth = rt, jnp.stack([jnp.cross(r[:, k], s.vel) for k in range(3)])   # [3, 3] each
   n = r[0, 0] ** 2 + r[1, 0] ** 2
   dyaw = jnp.stack([-r[0, 0] * r[2, 0] / n, -r[1, 0] * r[2, 0] / n, jnp.ones(())])
   hgt = jnp.maximum(s.pos[2], cfg.flow_min_height)
@@ -376,7 +378,7 @@ def _innovations(cfg: EKFConfig, s: EKFState, z):
   """Innovations [13] of the rows z [13] against the state (heading wrapped to (-pi, pi]) and H [13, 15] there."""
   pred, H = _linearise(cfg, s)
   innov = z - pred
-  return innov.at[_MAG_ROW].set(wrap_angle(innov[_MAG_ROW])), H
+  return with_component(innov, _MAG_ROW, wrap_angle(innov[_MAG_ROW])), H
 
 
 def _row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
@@ -647,7 +649,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   odom = (readings.odom_fresh > 0.5) & cfg.use_odom
   nhc = (readings.odom_fresh > 0.5) & cfg.use_nhc
   fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
-  enable = fresh.at[2].set(gps & cfg.fuse_gps_height)
+  enable = with_component(fresh, 2, gps & cfg.fuse_gps_height)
   z, noise, gate = _measurement_rows(cfg, readings)
   innov, H = _innovations(cfg, s, z)
   # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
@@ -669,8 +671,9 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   # timeout bookkeeping and the nominal state's side of the resets (P's side was done in the cov tick)
   reset_pos, reset_vel, reset_hgt = _resets(accept, due)
   gps_pos_age, gps_vel_age, hgt_age = jnp.where(_blocks_fused(accept), 0.0, ages)
-  pos = jnp.where(reset_pos, s.pos.at[:2].set(readings.gps_pos[:2]), s.pos)
-  pos = jnp.where(reset_hgt, pos.at[2].set(readings.baro_alt), pos)
+  horizontal = jnp.arange(3) < 2
+  pos = jnp.where(reset_pos & horizontal, readings.gps_pos, s.pos)
+  pos = jnp.where(reset_hgt, with_component(pos, 2, readings.baro_alt), pos)
   vel = jnp.where(reset_vel, readings.gps_vel, s.vel)
   any_reset = reset_pos | reset_vel | reset_hgt
 
@@ -715,7 +718,7 @@ def ekf_rotmat(state: EKFState):
 
 def ekf_body_velocity(state: EKFState):
   """[3] estimated velocity in the body frame (FLU), m/s."""
-  return quat_to_rot(state.quat).T @ state.vel
+  return matvec_t(quat_to_rot(state.quat), state.vel)
 
 
 def ekf_std(state: EKFState):

@@ -56,3 +56,39 @@ def yaw_rot2(yaw):
 def wrap_angle(a):
   """Wrap radians to (-pi, pi]."""
   return jnp.arctan2(jnp.sin(a), jnp.cos(a))
+
+
+# Small-vector products written component-wise. jnp.linalg.norm / jnp.dot / `@` on [2]-[4] vectors lower to reductions
+# and batched dots, and under vmap on a GPU every reduction or dot is a kernel of its own that XLA cannot fuse with its
+# neighbours (BENCHMARKS.md session 26: the PX4 cascade went from 15 to 7 kernels per tick this way). Sums of
+# products of slices are elementwise over the batch and fuse into the surrounding kernels.
+
+
+def norm(v):
+  """[..., n] -> [...] Euclidean norm over the last axis (n small), as a sum of squares of its components."""
+  return jnp.sqrt(sum(v[..., k] * v[..., k] for k in range(v.shape[-1])))
+
+
+def dot(a, b):
+  """[..., n] . [..., n] -> [...] over the last axis (n small)."""
+  return sum(a[..., k] * b[..., k] for k in range(a.shape[-1]))
+
+
+def matvec(m, v):
+  """[..., r, c] @ [..., c] -> [..., r] (c small)."""
+  return sum(m[..., :, k] * v[..., None, k] for k in range(m.shape[-1]))
+
+
+def matvec_t(m, v):
+  """[..., r, c]' @ [..., r] -> [..., c] (r small): m transposed times v, without a transpose."""
+  return sum(m[..., k, :] * v[..., k, None] for k in range(m.shape[-2]))
+
+
+def with_component(v, k: int, x):
+  """v [..., n] with component k (static) replaced by x [...]: `v.at[..., k].set(x)` as a select, which fuses."""
+  return jnp.where(jnp.arange(v.shape[-1]) == k, jnp.expand_dims(x, -1), v)
+
+
+def scale_head(v, k: int, f):
+  """v [..., n] with its first k (static) components multiplied by f [...]: `v.at[..., :k].multiply(f)` as a select."""
+  return jnp.where(jnp.arange(v.shape[-1]) < k, v * jnp.expand_dims(f, -1), v)

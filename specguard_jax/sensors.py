@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from specguard_jax.math3d import quat_to_euler, quat_to_rot, wrap_angle
+from specguard_jax.math3d import matvec_t, quat_to_euler, quat_to_rot, wrap_angle
 from specguard_jax.types import SensorReadings, TrueState
 
 GRAVITY = 9.81  # m/s^2; world gravity vector is (0, 0, -GRAVITY)
@@ -145,14 +145,14 @@ def _measure(cfg: SensorConfig, truth: TrueState, gyro_bias, accel_bias, gps_dri
   """
   f32 = jnp.float32
   r = quat_to_rot(truth.quat)
-  vel_b = r.T @ truth.vel
+  vel_b = matvec_t(r, truth.vel)
   sig_p = jnp.array([cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_h, cfg.gps_pos_sigma_v], f32)
   sig_v = jnp.array([cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_h, cfg.gps_vel_sigma_v], f32)
   gps_pos = truth.pos + gps_drift + sig_p * n[0:3]
   gps_vel = truth.vel + sig_v * n[3:6]
   gyro = truth.ang_vel + gyro_bias + cfg.gyro_sigma * n[6:9]
   g = jnp.array([0.0, 0.0, -GRAVITY], f32)
-  accel = r.T @ (truth.acc - g) + accel_bias + cfg.accel_sigma * n[9:12]
+  accel = matvec_t(r, truth.acc - g) + accel_bias + cfg.accel_sigma * n[9:12]
   gyro = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE)
   accel = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE)
   mag_yaw = wrap_angle(quat_yaw(truth.quat) + cfg.mag_sigma * n[12])

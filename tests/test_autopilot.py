@@ -135,3 +135,89 @@ def test_rover_speed_and_turn():
   assert abs(wrap(yaw[395] - 0.0)) < 0.1             # heading 0 reached before t = 8 s
   assert abs(wrap(yaw[-1] - np.pi / 2)) < 0.1        # then the 90 deg heading change
   assert u.max() < 12.5                               # never beyond the rover's top speed
+
+
+def _cascade_reference(p, af, cs, vel_sp, yaw_sp, vel, quat, rate, dt, armed):
+  """The PX4 cascade of px4.mc_control in float64 numpy with vector/matrix products (one vehicle): the oracle of the
+  component-wise implementation."""
+  kp = np.array([p.xy_vel_p, p.xy_vel_p, p.z_vel_p])
+  ki = np.array([p.xy_vel_i, p.xy_vel_i, p.z_vel_i])
+  kd = np.array([p.xy_vel_d, p.xy_vel_d, p.z_vel_d])
+  err = vel_sp - vel
+  acc = kp * err + cs["vel_int"] - kd * (vel - cs["prev_vel"]) / dt
+  h = np.linalg.norm(acc[:2]) + 1e-9
+  sat = h > p.acc_hor_max
+  acc[:2] *= min(1.0, p.acc_hor_max / h)
+  lim = np.array([p.vel_int_lim, p.vel_int_lim, p.vel_int_lim_z])
+  vel_int = np.clip(cs["vel_int"] + np.array([1.0 - sat, 1.0 - sat, 1.0]) * ki * err * dt, -lim, lim)
+  lift = max(9.81 + acc[2], 0.981)
+  z = np.array([acc[0], acc[1], lift]) / np.linalg.norm([acc[0], acc[1], lift])
+  tilt = np.arccos(np.clip(z[2], -1, 1))
+  if tilt > p.tilt_max:
+    hz = np.linalg.norm(z[:2]) + 1e-9
+    z = np.array([z[0] / hz * np.sin(p.tilt_max), z[1] / hz * np.sin(p.tilt_max), np.cos(p.tilt_max)])
+  thrust = np.clip(lift / 9.81 * af.hover_thrust / max(z[2], 0.3), p.thr_min, p.thr_max)
+  y = np.cross(z, [np.cos(yaw_sp), np.sin(yaw_sp), 0.0])
+  y = y / (np.linalg.norm(y) + 1e-9)
+  r_des = np.stack([np.cross(y, z), y, z], axis=1)
+  r = np.asarray(math3d.quat_to_rot(jnp.asarray(quat, jnp.float32)), np.float64)
+  m = r_des.T @ r - r.T @ r_des
+  k = np.array([p.roll_p, p.pitch_p, p.yaw_p])
+  rlim = np.array([p.rollrate_max, p.pitchrate_max, p.yawrate_max])
+  rate_sp = np.clip(-k * 0.5 * np.array([m[2, 1], m[0, 2], m[1, 0]]), -rlim, rlim)
+  g = np.array([p.rollrate_pid, p.pitchrate_pid, p.yawrate_pid])
+  rerr = rate_sp - rate
+  torque = np.clip(g[:, 0] * rerr + cs["rate_int"] - g[:, 2] * (rate - cs["prev_rate"]) / dt, -1, 1)
+  tau = torque * af.torque_scale
+  u_rp = af.alloc[:, :2] @ tau[:2] / af.thrust_max
+  u_y = af.alloc[:, 2] * tau[2] / af.thrust_max
+  u_rp = u_rp * min(1.0, 1.0 / max(u_rp.max() - u_rp.min(), 1e-9))
+  base = af.alloc[:, 3] * thrust * af.n_rotors + u_rp
+  base = base + max(0.0, -base.min()) - max(0.0, base.max() - 1.0)
+  room = np.where(u_y > 0, (1 - base) / np.maximum(u_y, 1e-9), base / np.maximum(-u_y, 1e-9))
+  s_y = np.clip(np.min(np.where(np.abs(u_y) > 1e-9, room, 1.0)), 0, 1)
+  rotors = np.clip(base + s_y * u_y, 0, 1) * af.thrust_max * armed
+  return rotors, acc, rate_sp, vel_int * armed
+
+
+def test_cascade_equals_the_vector_form_reference(drone):
+  """px4.mc_control (written component-wise: no reductions or small matmuls, which on a GPU are kernels of their
+  own) equals the float64 vector/matrix form of the same cascade on random states, tilt-limited ones included."""
+  _, _, af = drone
+  p = px4.MulticopterParams()
+  rng = np.random.default_rng(0)
+  n = 256
+  f = lambda *s, sc=1.0: (rng.normal(size=(n,) + s) * sc).astype(np.float32)  # noqa: E731
+  q = f(4)
+  q /= np.linalg.norm(q, axis=1, keepdims=True)
+  cs = {"vel_int": f(3), "rate_int": f(3, sc=0.2), "prev_vel": f(3, sc=5), "prev_rate": f(3, sc=2)}
+  vel_sp, yaw_sp, vel, rate = f(3, sc=5), f(sc=3), f(3, sc=5), f(3, sc=2)
+  armed = rng.random(n) < 0.8
+  step = jax.jit(jax.vmap(lambda c, vs, ys, v, qq, r, a: px4.mc_control(
+      p, af, px4.MCControlState(**c), vs, ys, v, qq, r, DT, a)))
+  new_cs, rotors, dbg = step(cs, vel_sp, yaw_sp, vel, q, rate, armed)
+  n_tilted = 0
+  for i in range(n):
+    ref = _cascade_reference(p, af, {k: v[i].astype(np.float64) for k, v in cs.items()}, vel_sp[i], yaw_sp[i],
+                             vel[i], q[i], rate[i], DT, armed[i])
+    n_tilted += np.arctan2(np.linalg.norm(ref[1][:2]), max(9.81 + ref[1][2], 0.981)) > p.tilt_max
+    np.testing.assert_allclose(np.asarray(rotors[i]), ref[0], atol=2e-4 * af.thrust_max)
+    np.testing.assert_allclose(np.asarray(dbg["acc_sp"][i]), ref[1], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(dbg["rate_sp"][i]), ref[2], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(new_cs.vel_int[i]), ref[3], atol=1e-5)
+  assert n_tilted > 10   # the tilt limit is exercised
+
+
+def test_small_vector_helpers_equal_jnp():
+  """math3d.norm / dot / matvec / matvec_t / with_component / scale_head equal their jnp forms, batched."""
+  rng = np.random.default_rng(1)
+  v, w = rng.normal(size=(5, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
+  m = rng.normal(size=(5, 3, 3)).astype(np.float32)
+  np.testing.assert_allclose(math3d.norm(v), np.linalg.norm(v, axis=-1), rtol=1e-6)
+  np.testing.assert_allclose(math3d.norm(v[:, :2]), np.linalg.norm(v[:, :2], axis=-1), rtol=1e-6)
+  np.testing.assert_allclose(math3d.dot(v, w), np.sum(v * w, -1), rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(math3d.matvec(m, v), np.einsum("bij,bj->bi", m, v), rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(math3d.matvec_t(m, v), np.einsum("bji,bj->bi", m, v), rtol=1e-5, atol=1e-6)
+  np.testing.assert_array_equal(math3d.with_component(v, 2, w[:, 0]), np.asarray(jnp.asarray(v).at[:, 2].set(w[:, 0])))
+  np.testing.assert_array_equal(math3d.scale_head(v, 2, w[:, 1]),
+                                np.asarray(jnp.asarray(v).at[:, :2].multiply(w[:, 1:2])))

@@ -50,7 +50,7 @@ def rover_control(p: RoverParams, cs: RoverControlState, vel_sp, yaw, speed, dt,
 
   Returns (state, throttle [] in [-1, 1], steer [] rad).
   """
-  v_des = jnp.linalg.norm(vel_sp[:2])
+  v_des = math3d.norm(vel_sp[:2])
   heading = jnp.arctan2(vel_sp[1], vel_sp[0])
   err = math3d.wrap_angle(heading - yaw)
   err = jnp.where(v_des > 0.05, err, 0.0)

@@ -14,6 +14,8 @@ import dataclasses
 import jax.numpy as jnp
 from flax import struct
 
+from specguard_jax.math3d import dot, norm, scale_head, with_component
+
 TAKEOFF, CRUISE, LOITER, DESCENT, DONE = 0, 1, 2, 3, 4
 PHASE_NAMES = ("takeoff", "cruise", "loiter", "descent", "done")
 
@@ -62,8 +64,7 @@ def nav_init(mission) -> NavState:
 
 
 def _norm(v, planar):
-  v = v.at[..., 2].set(0.0) if planar else v
-  return jnp.linalg.norm(v, axis=-1)
+  return norm(v[..., :2]) if planar else norm(v)
 
 
 def corner_speed(p: NavParams, mission, idx):
@@ -74,7 +75,7 @@ def corner_speed(p: NavParams, mission, idx):
   nxt = wp[jnp.minimum(idx + 1, wp.shape[0] - 1)]
   a = (wp[idx] - prev)[:2]
   b = (nxt - wp[idx])[:2]
-  cosang = jnp.dot(a, b) / (jnp.linalg.norm(a) * jnp.linalg.norm(b) + 1e-6)
+  cosang = dot(a, b) / (norm(a) * norm(b) + 1e-6)
   half = 0.5 * jnp.arccos(jnp.clip(cosang, -1.0, 1.0))
   v = jnp.sqrt(p.acc_turn * mission.acceptance_radius / jnp.maximum(jnp.tan(half), 1e-3))
   v = jnp.minimum(v, mission.cruise_speed)
@@ -83,15 +84,15 @@ def corner_speed(p: NavParams, mission, idx):
 
 
 def _clip_vel(p: NavParams, v):
-  h = jnp.linalg.norm(v[:2]) + 1e-9
-  v = v.at[:2].multiply(jnp.minimum(1.0, p.xy_vel_max / h))
-  return v.at[2].set(jnp.clip(v[2], -p.z_vel_max_dn, p.z_vel_max_up))
+  h = norm(v[:2]) + 1e-9
+  v = scale_head(v, 2, jnp.minimum(1.0, p.xy_vel_max / h))
+  return with_component(v, 2, jnp.clip(v[2], -p.z_vel_max_dn, p.z_vel_max_up))
 
 
 def _hold(p: NavParams, target, pos):
   v = jnp.array([p.xy_p, p.xy_p, p.z_p]) * (target - pos)
-  h = jnp.linalg.norm(v[:2]) + 1e-9
-  return v.at[:2].multiply(jnp.minimum(1.0, p.hold_speed_max / h))
+  h = norm(v[:2]) + 1e-9
+  return scale_head(v, 2, jnp.minimum(1.0, p.hold_speed_max / h))
 
 
 def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
@@ -106,17 +107,18 @@ def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
   tgt = nav.target
   target = wp[tgt]
   planar = p.planar
-  pos_g = pos.at[2].set(0.0) if planar else pos
-  target_g = target.at[2].set(0.0) if planar else target
-  start_g = nav.leg_start.at[2].set(0.0) if planar else nav.leg_start
+  pos_g = with_component(pos, 2, 0.0) if planar else pos
+  target_g = with_component(target, 2, 0.0) if planar else target
+  start_g = with_component(nav.leg_start, 2, 0.0) if planar else nav.leg_start
 
   # ---- cruise guidance along the leg start -> target ----
   leg = target_g - start_g
-  leg_len = jnp.linalg.norm(leg) + 1e-6
+  leg_len = norm(leg) + 1e-6
   u = leg / leg_len
-  s = jnp.clip(jnp.dot(pos_g - start_g, u), 0.0, leg_len)
+  along = dot(pos_g - start_g, u)
+  s = jnp.clip(along, 0.0, leg_len)
   closest = start_g + s * u
-  remaining = jnp.maximum(leg_len - jnp.dot(pos_g - start_g, u), 0.0)
+  remaining = jnp.maximum(leg_len - along, 0.0)
   v_corner = corner_speed(p, mission, tgt)
   # Brake to the corner speed by the switch point (acceptance radius before an intermediate waypoint; a stop at 0).
   to_switch = jnp.maximum(remaining - jnp.where(v_corner > 0, mission.acceptance_radius, 0.0), 0.0)
@@ -128,20 +130,20 @@ def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
   r_acc = mission.acceptance_radius
   if not planar:   # a rover stops where its last waypoint is accepted (ArduRover), a multicopter holds it
     r_acc = jnp.where((tgt >= n - 1) & (mission.land <= 0), p.final_radius * r_acc, r_acc)
-  passed = (jnp.dot(pos_g - start_g, u) > leg_len) & (dist < 2.0 * r_acc)
+  passed = (along > leg_len) & (dist < 2.0 * r_acc)
   reached = (dist < r_acc) | passed
 
   # ---- phase machine ----
   takeoff_pt = mission.home + jnp.array([0.0, 0.0, 1.0]) * mission.takeoff_alt
   climb_left = takeoff_pt[2] - pos[2]
-  vel_takeoff = _hold(p, takeoff_pt, pos).at[2].set(jnp.clip(p.z_p * climb_left + 0.5, 0.0, p.tko_speed))
+  vel_takeoff = with_component(_hold(p, takeoff_pt, pos), 2, jnp.clip(p.z_p * climb_left + 0.5, 0.0, p.tko_speed))
   takeoff_done = climb_left < 0.5
 
-  land_pt = wp[last].at[2].set(0.0)
+  land_pt = with_component(wp[last], 2, 0.0)
   h = pos[2]
   # Slow to the landing speed 2 m above MPC_LAND_ALT2 so the final window (S9) starts at the landing speed.
   vz_desc = jnp.clip(p.land_speed + 0.6 * (h - p.land_alt2 - 2.0), p.land_speed, p.z_vel_max_dn)
-  vel_descent = _hold(p, land_pt, pos).at[2].set(-vz_desc)
+  vel_descent = with_component(_hold(p, land_pt, pos), 2, -vz_desc)
   vel_loiter = _hold(p, target, pos)
   vel_done = jnp.where(mission.land > 0, jnp.zeros(3), _hold(p, wp[last], pos))
   if planar:
@@ -179,7 +181,7 @@ def nav_step(p: NavParams, nav: NavState, mission, pos, landed, dt):
   vel_sp = jnp.select([phase == TAKEOFF, phase == CRUISE, phase == LOITER, phase == DESCENT],
                       [vel_takeoff, vel_cruise, vel_loiter, vel_descent], vel_done)
   if planar:
-    vel_sp = vel_sp.at[2].set(0.0)
+    vel_sp = with_component(vel_sp, 2, 0.0)
   new_nav = NavState(phase=new_phase.astype(jnp.int32), target=new_target.astype(jnp.int32), leg_start=new_start,
                      loiter_timer=loiter_timer, time=nav.time + dt, reach_time=reach_time)
   return new_nav, vel_sp, u

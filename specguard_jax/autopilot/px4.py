@@ -22,6 +22,7 @@ for this airframe (tests/test_drone.py checks step responses), but the D terms s
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -128,6 +129,16 @@ class MCControlState:
     return cls(vel_int=z, rate_int=z, prev_vel=z, prev_rate=z)
 
 
+def _norm(*xs):
+  """Euclidean norm of scalars (component-wise: see the note in specguard_jax/math3d.py on small products)."""
+  return jnp.sqrt(sum(x * x for x in xs))
+
+
+def _vec(v):
+  """The components of a [3] vector as 0-d values."""
+  return v[0], v[1], v[2]
+
+
 def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   """Velocity PID -> acceleration setpoint [3] (world, m/s^2, gravity excluded)."""
   kp = jnp.array([p.xy_vel_p, p.xy_vel_p, p.z_vel_p])
@@ -137,43 +148,53 @@ def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   vel_dot = (vel - cs.prev_vel) / dt
   acc_sp = kp * err + cs.vel_int - kd * vel_dot
   # Horizontal acceleration limit (PX4: the tilt limit; see the module docstring).
-  h = jnp.linalg.norm(acc_sp[:2]) + 1e-9
+  h = _norm(acc_sp[0], acc_sp[1]) + 1e-9
   saturated = h > p.acc_hor_max
-  acc_sp = acc_sp.at[:2].multiply(jnp.minimum(1.0, p.acc_hor_max / h))
+  horizontal = jnp.arange(3) < 2
+  acc_sp = jnp.where(horizontal, acc_sp * jnp.minimum(1.0, p.acc_hor_max / h), acc_sp)
   # Anti-windup (as PX4): the horizontal integrator only integrates while the horizontal output is not saturated.
-  grow = jnp.array([1.0, 1.0, 1.0]) - jnp.array([1.0, 1.0, 0.0]) * saturated
+  grow = jnp.where(horizontal & saturated, 0.0, 1.0)
   lim = jnp.array([p.vel_int_lim, p.vel_int_lim, p.vel_int_lim_z])
   vel_int = jnp.clip(cs.vel_int + grow * ki * err * dt, -lim, lim)
   return acc_sp, cs.replace(vel_int=vel_int, prev_vel=vel)
 
 
 def thrust_attitude(p: MulticopterParams, hover_thrust, acc_sp, yaw_sp):
-  """Acceleration setpoint -> (desired rotation [3,3], normalised collective thrust []). PX4 _accelerationControl."""
-  lift = jnp.maximum(G + acc_sp[2], 0.1 * G)
-  body_z = jnp.array([acc_sp[0], acc_sp[1], lift])
-  body_z = body_z / jnp.linalg.norm(body_z)
+  """Acceleration setpoint -> (desired rotation [3,3] as its columns body_x, body_y, body_z (each a tuple of 3
+  components), normalised collective thrust []). PX4 _accelerationControl."""
+  ax, ay, az = _vec(acc_sp)
+  lift = jnp.maximum(G + az, 0.1 * G)
+  n = _norm(ax, ay, lift)
+  zx, zy, zz = ax / n, ay / n, lift / n
   # Tilt limit: keep the direction, cap the angle from vertical.
-  tilt = jnp.arccos(jnp.clip(body_z[2], -1.0, 1.0))
-  h = jnp.linalg.norm(body_z[:2]) + 1e-9
+  tilt = jnp.arccos(jnp.clip(zz, -1.0, 1.0))
+  h = _norm(zx, zy) + 1e-9
   tilt_c = jnp.minimum(tilt, p.tilt_max)
-  body_z = jnp.where(tilt > p.tilt_max,
-                     jnp.array([body_z[0] / h * jnp.sin(tilt_c), body_z[1] / h * jnp.sin(tilt_c), jnp.cos(tilt_c)]),
-                     body_z)
-  thrust = lift / G * hover_thrust / jnp.maximum(body_z[2], 0.3)
+  over = tilt > p.tilt_max
+  s_c = jnp.sin(tilt_c)
+  zx, zy, zz = (jnp.where(over, zx / h * s_c, zx), jnp.where(over, zy / h * s_c, zy),
+                jnp.where(over, jnp.cos(tilt_c), zz))
+  thrust = lift / G * hover_thrust / jnp.maximum(zz, 0.3)
   thrust = jnp.clip(thrust, p.thr_min, p.thr_max)
-  x_c = jnp.array([jnp.cos(yaw_sp), jnp.sin(yaw_sp), 0.0])
-  body_y = jnp.cross(body_z, x_c)
-  body_y = body_y / (jnp.linalg.norm(body_y) + 1e-9)
-  body_x = jnp.cross(body_y, body_z)
-  r_des = jnp.stack([body_x, body_y, body_z], axis=1)
-  return r_des, thrust
+  cx, cy = jnp.cos(yaw_sp), jnp.sin(yaw_sp)
+  # body_y = body_z x (cos yaw, sin yaw, 0), normalised; body_x = body_y x body_z
+  yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx
+  ny = _norm(yx, yy, yz) + 1e-9
+  yx, yy, yz = yx / ny, yy / ny, yz / ny
+  xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+  return ((xx, xy, xz), (yx, yy, yz), (zx, zy, zz)), thrust
 
 
 def attitude_control(p: MulticopterParams, r_des, quat):
-  """Geometric attitude P controller -> body-rate setpoint [3] (rad/s), rate-limited per axis."""
+  """Geometric attitude P controller -> body-rate setpoint [3] (rad/s), rate-limited per axis. r_des: the desired
+  rotation's columns (`thrust_attitude`)."""
   r = math3d.quat_to_rot(quat)
-  m = r_des.T @ r - r.T @ r_des
-  e_r = 0.5 * jnp.array([m[2, 1], m[0, 2], m[1, 0]])
+  rc = [[r[k, j] for k in range(3)] for j in range(3)]    # rc[j][k] = R[k, j]: the columns of R
+
+  def m(i, j):   # (R_des' R - R' R_des)[i, j]
+    return sum(r_des[i][k] * rc[j][k] for k in range(3)) - sum(rc[i][k] * r_des[j][k] for k in range(3))
+
+  e_r = 0.5 * jnp.stack([m(2, 1), m(0, 2), m(1, 0)])
   k = jnp.array([p.roll_p, p.pitch_p, p.yaw_p])
   lim = jnp.array([p.rollrate_max, p.pitchrate_max, p.yawrate_max])
   return jnp.clip(-k * e_r, -lim, lim)
@@ -181,7 +202,7 @@ def attitude_control(p: MulticopterParams, r_des, quat):
 
 def rate_control(p: MulticopterParams, cs: MCControlState, rate_sp, rate, dt, integrate):
   """Rate PID -> normalised torques [3] in [-1, 1]."""
-  gains = jnp.array([p.rollrate_pid, p.pitchrate_pid, p.yawrate_pid])  # [3, 3]: axis x (P, I, D)
+  gains = np.array([p.rollrate_pid, p.pitchrate_pid, p.yawrate_pid], np.float32)  # [3, 3]: axis x (P, I, D)
   err = rate_sp - rate
   rate_dot = (rate - cs.prev_rate) / dt
   torque = gains[:, 0] * err + cs.rate_int - gains[:, 2] * rate_dot
@@ -192,23 +213,28 @@ def rate_control(p: MulticopterParams, cs: MCControlState, rate_sp, rate, dt, in
 
 def mix(airframe: Airframe, torque_norm, thrust_norm):
   """Normalised torques [3] and collective thrust [] -> rotor thrusts [n] (N), PX4-style desaturation."""
-  alloc = jnp.asarray(airframe.alloc)                        # [n, 4]
-  scale = jnp.asarray(airframe.torque_scale)
+  alloc = np.asarray(airframe.alloc, np.float32)            # [n, 4]
+  scale = np.asarray(airframe.torque_scale, np.float32)
   tmax = airframe.thrust_max
-  tau = torque_norm * scale
-  u_rp = alloc[:, :2] @ tau[:2] / tmax                        # normalised rotor commands from roll/pitch
-  u_y = alloc[:, 2] * tau[2] / tmax
-  u_t = alloc[:, 3] * (thrust_norm * airframe.n_rotors * tmax) / tmax
+  n = airframe.n_rotors
+  t0, t1, t2 = (torque_norm[k] * scale[k] for k in range(3))
+  u_rp = [(alloc[i, 0] * t0 + alloc[i, 1] * t1) / tmax for i in range(n)]   # normalised rotor commands, roll/pitch
+  u_y = [alloc[i, 2] * t2 / tmax for i in range(n)]
+  u_t = [alloc[i, 3] * (thrust_norm * n * tmax) / tmax for i in range(n)]
+  vmax = lambda xs: functools.reduce(jnp.maximum, xs)   # noqa: E731
+  vmin = lambda xs: functools.reduce(jnp.minimum, xs)   # noqa: E731
   # 1) roll/pitch must fit in [0, 1]: scale them down if their spread alone exceeds the range.
-  spread = jnp.max(u_rp) - jnp.min(u_rp)
-  u_rp = u_rp * jnp.minimum(1.0, 1.0 / jnp.maximum(spread, 1e-9))
+  spread = vmax(u_rp) - vmin(u_rp)
+  f = jnp.minimum(1.0, 1.0 / jnp.maximum(spread, 1e-9))
+  u_rp = [x * f for x in u_rp]
   # 2) shift the collective thrust so that thrust + roll/pitch fits.
-  base = u_t + u_rp
-  base = base + jnp.maximum(0.0, -jnp.min(base)) - jnp.maximum(0.0, jnp.max(base) - 1.0)
+  base = [a + b for a, b in zip(u_t, u_rp)]
+  lo, hi = jnp.maximum(0.0, -vmin(base)), jnp.maximum(0.0, vmax(base) - 1.0)
+  base = [x + lo - hi for x in base]
   # 3) yaw gives way: largest fraction of the yaw command that keeps every rotor in range.
-  room = jnp.where(u_y > 0, (1.0 - base) / jnp.maximum(u_y, 1e-9), base / jnp.maximum(-u_y, 1e-9))
-  s_y = jnp.clip(jnp.min(jnp.where(jnp.abs(u_y) > 1e-9, room, 1.0)), 0.0, 1.0)
-  u = jnp.clip(base + s_y * u_y, 0.0, 1.0)
+  room = [jnp.where(uy > 0, (1.0 - b) / jnp.maximum(uy, 1e-9), b / jnp.maximum(-uy, 1e-9)) for b, uy in zip(base, u_y)]
+  s_y = jnp.clip(vmin([jnp.where(jnp.abs(uy) > 1e-9, r, 1.0) for r, uy in zip(room, u_y)]), 0.0, 1.0)
+  u = jnp.clip(jnp.stack([b + s_y * uy for b, uy in zip(base, u_y)]), 0.0, 1.0)
   return u * tmax
 
 
