@@ -278,10 +278,12 @@ def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
   def three(env, s):   # a rolled loop: one copy of each env step in the program
     return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
   out_skip, out_full = jax.jit(lambda s: (three(env_skip, s), three(env_full, s)))(s)
+  # The same filter in two programs, which XLA fuses (and so rounds) differently: float32 rounding apart (a flow
+  # innovation of 0.03 was 1.3e-7 apart on the CI machine), far below any difference a wrong GPS schedule makes.
   for name in ("pos", "vel", "quat", "P", "test_ratio", "accepted", "innov", "gps_pos_age"):
     np.testing.assert_allclose(np.asarray(getattr(out_skip.info["sim"]["ekf"], name)),
-                               np.asarray(getattr(out_full.info["sim"]["ekf"], name)), rtol=1e-6, atol=1e-7,
-                               err_msg=name)
+                               np.asarray(getattr(out_full.info["sim"]["ekf"], name)), rtol=2e-5,
+                               atol=1e-9 if name == "P" else 1e-6, err_msg=name)
   np.testing.assert_allclose(np.asarray(out_skip.pipeline_state.qpos), np.asarray(out_full.pipeline_state.qpos),
                              rtol=1e-6, atol=1e-7)
 
