@@ -64,9 +64,14 @@ def wrap_angle(a):
 # products of slices are elementwise over the batch and fuse into the surrounding kernels.
 
 
+def hypot(*xs):
+  """Euclidean norm of the components xs (arrays of one shape): sqrt of the sum of their squares."""
+  return jnp.sqrt(sum(x * x for x in xs))
+
+
 def norm(v):
   """[..., n] -> [...] Euclidean norm over the last axis (n small), as a sum of squares of its components."""
-  return jnp.sqrt(sum(v[..., k] * v[..., k] for k in range(v.shape[-1])))
+  return hypot(*(v[..., k] for k in range(v.shape[-1])))
 
 
 def dot(a, b):

@@ -209,12 +209,13 @@ def test_cascade_equals_the_vector_form_reference(drone):
 
 
 def test_small_vector_helpers_equal_jnp():
-  """math3d.norm / dot / matvec / matvec_t / with_component / scale_head equal their jnp forms, batched."""
+  """math3d.norm / hypot / dot / matvec / matvec_t / with_component / scale_head equal their jnp forms, batched."""
   rng = np.random.default_rng(1)
   v, w = rng.normal(size=(5, 3)).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32)
   m = rng.normal(size=(5, 3, 3)).astype(np.float32)
   np.testing.assert_allclose(math3d.norm(v), np.linalg.norm(v, axis=-1), rtol=1e-6)
   np.testing.assert_allclose(math3d.norm(v[:, :2]), np.linalg.norm(v[:, :2], axis=-1), rtol=1e-6)
+  np.testing.assert_allclose(math3d.hypot(v[:, 0], w[:, 1]), np.hypot(v[:, 0], w[:, 1]), rtol=1e-6)
   np.testing.assert_allclose(math3d.dot(v, w), np.sum(v * w, -1), rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(math3d.matvec(m, v), np.einsum("bij,bj->bi", m, v), rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(math3d.matvec_t(m, v), np.einsum("bji,bj->bi", m, v), rtol=1e-5, atol=1e-6)

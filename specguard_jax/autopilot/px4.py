@@ -129,16 +129,6 @@ class MCControlState:
     return cls(vel_int=z, rate_int=z, prev_vel=z, prev_rate=z)
 
 
-def _norm(*xs):
-  """Euclidean norm of scalars (component-wise: see the note in specguard_jax/math3d.py on small products)."""
-  return jnp.sqrt(sum(x * x for x in xs))
-
-
-def _vec(v):
-  """The components of a [3] vector as 0-d values."""
-  return v[0], v[1], v[2]
-
-
 def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   """Velocity PID -> acceleration setpoint [3] (world, m/s^2, gravity excluded)."""
   kp = jnp.array([p.xy_vel_p, p.xy_vel_p, p.z_vel_p])
@@ -148,7 +138,7 @@ def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   vel_dot = (vel - cs.prev_vel) / dt
   acc_sp = kp * err + cs.vel_int - kd * vel_dot
   # Horizontal acceleration limit (PX4: the tilt limit; see the module docstring).
-  h = _norm(acc_sp[0], acc_sp[1]) + 1e-9
+  h = math3d.norm(acc_sp[:2]) + 1e-9
   saturated = h > p.acc_hor_max
   horizontal = jnp.arange(3) < 2
   acc_sp = jnp.where(horizontal, acc_sp * jnp.minimum(1.0, p.acc_hor_max / h), acc_sp)
@@ -162,13 +152,13 @@ def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
 def thrust_attitude(p: MulticopterParams, hover_thrust, acc_sp, yaw_sp):
   """Acceleration setpoint -> (desired rotation [3,3] as its columns body_x, body_y, body_z (each a tuple of 3
   components), normalised collective thrust []). PX4 _accelerationControl."""
-  ax, ay, az = _vec(acc_sp)
+  ax, ay, az = acc_sp[0], acc_sp[1], acc_sp[2]
   lift = jnp.maximum(G + az, 0.1 * G)
-  n = _norm(ax, ay, lift)
+  n = math3d.hypot(ax, ay, lift)
   zx, zy, zz = ax / n, ay / n, lift / n
   # Tilt limit: keep the direction, cap the angle from vertical.
   tilt = jnp.arccos(jnp.clip(zz, -1.0, 1.0))
-  h = _norm(zx, zy) + 1e-9
+  h = math3d.hypot(zx, zy) + 1e-9
   tilt_c = jnp.minimum(tilt, p.tilt_max)
   over = tilt > p.tilt_max
   s_c = jnp.sin(tilt_c)
@@ -179,7 +169,7 @@ def thrust_attitude(p: MulticopterParams, hover_thrust, acc_sp, yaw_sp):
   cx, cy = jnp.cos(yaw_sp), jnp.sin(yaw_sp)
   # body_y = body_z x (cos yaw, sin yaw, 0), normalised; body_x = body_y x body_z
   yx, yy, yz = -zz * cy, zz * cx, zx * cy - zy * cx
-  ny = _norm(yx, yy, yz) + 1e-9
+  ny = math3d.hypot(yx, yy, yz) + 1e-9
   yx, yy, yz = yx / ny, yy / ny, yz / ny
   xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
   return ((xx, xy, xz), (yx, yy, yz), (zx, zy, zz)), thrust
