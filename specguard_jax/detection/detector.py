@@ -76,6 +76,7 @@ import numpy as np
 from flax import struct
 
 from specguard_jax import ekf as ekf_lib
+from specguard_jax import math3d
 from specguard_jax.attacks import attacks as attacks_lib
 from specguard_jax.math3d import quat_to_rot
 from specguard_jax.types import SENSOR_NAMES, SensorReadings
@@ -311,7 +312,7 @@ def detector_init(cfg: DetectorConfig) -> DetectorState:
 def _imu_prediction(cfg: DetectorConfig, state: DetectorState, readings: SensorReadings, ekf, actuation, dt):
   """Model-predicted (specific force [3] m/s^2, body rate [3] rad/s), IMU channel mask [6], airborne [] bool."""
   r = quat_to_rot(ekf.quat)
-  vb = r.T @ ekf.vel
+  vb = math3d.matvec_t(r, ekf.vel)
   gyro = readings.gyro
   if cfg.vehicle == "drone":
     t = jnp.asarray(actuation, jnp.float32)
@@ -321,7 +322,7 @@ def _imu_prediction(cfg: DetectorConfig, state: DetectorState, readings: SensorR
     w = state.rate_model
     w_dot = (tau - jnp.cross(w, inertia * w)) / inertia
     rate_pred = w + w_dot * dt
-    drag = -(cfg.drag_lin * vb + cfg.drag_quad * jnp.linalg.norm(vb) * vb)
+    drag = -(cfg.drag_lin * vb + cfg.drag_quad * math3d.norm(vb) * vb)
     f_pred = (jnp.array([0.0, 0.0, 1.0]) * jnp.sum(t) + drag) / cfg.mass
     airborne = ekf.pos[2] > cfg.ground_z + cfg.min_height
     ch = jnp.ones(6, bool)
@@ -401,7 +402,7 @@ def consistency(cfg: DetectorConfig, state: DetectorState, readings: SensorReadi
   c, s = jnp.cos(dyaw), jnp.sin(dyaw)
   v = readings.gps_vel
   v_m = jnp.stack([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]])   # Rz(-dyaw) v: heading from the magnetometer
-  vb = jnp.concatenate([(r.T @ v)[:2], (r.T @ v_m)[:2]])
+  vb = jnp.concatenate([math3d.matvec_t(r, v)[:2], math3d.matvec_t(r, v_m)[:2]])
   if cfg.vehicle == "drone":
     # flow x height, the height from the baro and from the GPS (an attack on either must not fail the check alone)
     h = jnp.maximum(jnp.stack([readings.baro_alt, readings.gps_pos[2]]), cfg.flow_min_height)        # [2]
@@ -427,7 +428,7 @@ def consistency(cfg: DetectorConfig, state: DetectorState, readings: SensorReadi
   age = jnp.where(jnp.stack([upd, upd_z]), 0.0, state.cons_age + dt)
   avail = (new_w > 0.5) & (age < 0.5)
   norm = np.sqrt(a / (2.0 - a))
-  chi = jnp.linalg.norm(cons_v.reshape(2, 2, 2), axis=-1) / norm          # [height source, heading]
+  chi = math3d.norm(cons_v.reshape(2, 2, 2)) / norm          # [height source, heading]
   chi = jnp.min(chi, axis=0) * avail[0]                                   # consistent under either height
   out = jnp.concatenate([chi, (jnp.abs(cons_z) * avail[1])[None], avail.astype(f32)])
   return out, state.replace(cons_v=cons_v, cons_z=cons_z, cons_w=new_w, cons_age=age, gps_age=gps_age, cons=out)
@@ -456,7 +457,7 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   dyaw = readings.mag_yaw - jnp.arctan2(r[1, 0], r[0, 0])
   c, s = jnp.cos(dyaw), jnp.sin(dyaw)
   r_m = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r   # EKF tilt, magnetometer heading
-  vb = r.T @ ekf.vel
+  vb = math3d.matvec_t(r, ekf.vel)
   if cfg.vehicle == "drone":
     fresh = readings.flow_fresh > 0.5
     aid = jnp.where(fresh, readings.flow, state.aid)
@@ -482,23 +483,23 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   # GPS - DR, smoothed over dr_ema_s (the GPS position's white noise is most of a single sample's disagreement)
   dr_e = jnp.where(jnp.isfinite(state.dr_e), state.dr_e, 0.0)
   dr_e = dr_e + min(1.0, dt / cfg.dr_ema_s) * ((gps[None] - dr) - dr_e)
-  d = jnp.min(jnp.linalg.norm(dr_e, axis=-1))
+  d = jnp.min(math3d.norm(dr_e))
   # complementary IMU filters: [GPS, aiding] velocities
-  a = (r @ (readings.accel - ekf.accel_bias))[:2]
+  a = math3d.matvec(r, readings.accel - ekf.accel_bias)[:2]
   comp = jnp.where(jnp.isfinite(state.comp), state.comp, ekf.vel[None, :2]) + dt * a[None]
   target = jnp.stack([readings.gps_vel[:2], vw[0]])
   k = min(1.0, dt / cfg.comp_tau)
   comp = comp + k * (target - comp)
-  comp = comp.at[1].set(jnp.where(ok, comp[1], ekf.vel[:2]))
+  comp = jnp.where((jnp.arange(2) == 1)[:, None] & ~ok, ekf.vel[None, :2], comp)
   innov = jnp.where(jnp.stack([gps_ok, ok])[:, None], target - comp, 0.0)
   comp_e = state.comp_e + min(1.0, dt / cfg.comp_ema) * (innov - state.comp_e)
   comp_e = jnp.where(jnp.all(jnp.isfinite(comp_e)), comp_e, 0.0)
   chi = jnp.minimum(state.cons[0], state.cons[1])
   armed = ok & gps_ok & (state.airborne_time >= cfg.xcheck_arm_s) & (state.cons[3] > 0.5)
-  xchk = jnp.stack([d / cfg.dr_h, chi / cfg.vel_h, jnp.linalg.norm(comp_e[0]), jnp.linalg.norm(comp_e[1])])
+  xchk = jnp.stack([d / cfg.dr_h, chi / cfg.vel_h, math3d.norm(comp_e[0]), math3d.norm(comp_e[1])])
   xchk = jnp.where(jnp.isfinite(xchk), xchk, 0.0) * armed
   # (rover: body y only; its throttle model of body x is too rough for the diagnosis, `_imu_prediction`)
-  acc = jnp.stack([jnp.abs(state.acc_e[1]) if cfg.vehicle == "rover" else jnp.linalg.norm(state.acc_e[:2]),
+  acc = jnp.stack([jnp.abs(state.acc_e[1]) if cfg.vehicle == "rover" else math3d.norm(state.acc_e[:2]),
                    jnp.abs(state.acc_e[2])])
   xchk = jnp.concatenate([xchk, jnp.where(jnp.isfinite(acc), acc, 0.0)])
   return xchk, armed, state.replace(dr=dr, dr_e=dr_e, aid=aid, aid_age=aid_age, comp=comp, comp_e=comp_e,

@@ -50,8 +50,8 @@ class DynParams:
 
 def _features(s: DynState, u):
   r = math3d.quat_to_rot(s.quat)
-  vb = r.T @ s.vel
-  sp = jnp.linalg.norm(vb)
+  vb = math3d.matvec_t(r, s.vel)
+  sp = math3d.norm(vb)
   w = s.rate
   one = jnp.ones((1,))
   phi_lin = jnp.concatenate([u, u * sp, vb, sp * vb, jnp.cross(w, vb), one])

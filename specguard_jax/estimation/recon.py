@@ -167,7 +167,7 @@ class ReconState:
 def input_vector(ekf_state, readings) -> jax.Array:
   """x'_t [15] from an EKF state and the readings it fused (see module docstring)."""
   r = math3d.quat_to_rot(ekf_state.quat)
-  acc = r @ (readings.accel - ekf_state.accel_bias) + dyn.G
+  acc = math3d.matvec(r, readings.accel - ekf_state.accel_bias) + dyn.G
   rate = ekf_lib.ekf_body_rates(ekf_state, readings)
   return jnp.concatenate([ekf_state.pos, ekf_state.vel, acc, ekf_lib.ekf_euler(ekf_state), rate])
 
@@ -228,10 +228,10 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   yaw = jnp.where(mag_ok, readings.mag_yaw, e[2])
   quat = math3d.euler_to_quat(jnp.stack([e[0], e[1], yaw]))
   u, f = state.acc_w - dyn.G, state.f_lp
-  nu, nf = jnp.linalg.norm(u), jnp.linalg.norm(f)
+  nu, nf = math3d.norm(u), math3d.norm(f)
   uh, fh = u / jnp.maximum(nu, 1e-6), f / jnp.maximum(nf, 1e-6)
   qz = jnp.stack([jnp.cos(0.5 * yaw), 0.0, 0.0, jnp.sin(0.5 * yaw)])
-  uy = math3d.quat_to_rot(qz).T @ uh                                              # a - g in the yaw frame
+  uy = math3d.matvec_t(math3d.quat_to_rot(qz), uh)                                             # a - g in the yaw frame
   qt = jnp.concatenate([jnp.reshape(1.0 + fh @ uy, (1,)), jnp.cross(fh, uy)])     # shortest rotation fh -> uy
   q_acc = math3d.quat_mul(qz, qt / jnp.maximum(jnp.linalg.norm(qt), 1e-6))
   off = jnp.arccos(jnp.clip((math3d.quat_to_rot(quat) @ fh) @ uh, -1.0, 1.0))     # shadow's tilt vs the reference
@@ -271,7 +271,7 @@ def _model_force(cfg: ReconConfig, f_b, s: dyn.DynState, controls):
   if not cfg.ground_vehicle:
     return f_b
   drive, rolling, drag, mass = cfg.ground_drive
-  u = (math3d.quat_to_rot(s.quat).T @ s.vel)[0]
+  u = math3d.matvec_t(math3d.quat_to_rot(s.quat), s.vel)[0]
   fx = (controls[0] * drive - rolling * u - drag * u * jnp.abs(u)) / mass
   return jnp.stack([fx, u * s.rate[2], jnp.full_like(fx, -dyn.G[2])])
 

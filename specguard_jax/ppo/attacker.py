@@ -32,6 +32,7 @@ import numpy as np
 from brax.envs.base import State, Wrapper
 
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import math3d
 from specguard_jax.types import SENSOR_NAMES
 
 N_ACT = 10
@@ -105,7 +106,7 @@ class AttackerEnv(Wrapper):
     target = jnp.where(adv["started"], adv["target"], jnp.argmax(scores)).astype(jnp.int32)
     hi = jnp.asarray(_HI)[target] * cfg.scale
     b = jnp.tanh(raw[6:9]) * hi * jnp.asarray(_DIMS)[target]
-    b = b * jnp.minimum(1.0, hi / (jnp.linalg.norm(b) + 1e-9))
+    b = b * jnp.minimum(1.0, hi / (math3d.norm(b) + 1e-9))
     onset = jnp.where(on & ~adv["started"], t, adv["onset"])
     onehot = jax.nn.one_hot(target, 6)
     bias = onehot[:, None] * b[None, :] * on
