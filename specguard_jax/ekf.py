@@ -624,9 +624,22 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
   anything (whether or not the channel has a fresh sample): how many sigmas a sensor disagrees with this estimate."""
   z, noise, _ = _measurement_rows(cfg, readings)
   innov, H = _innovations(cfg, state, z)
-  S = jnp.einsum("mi,ij,mj->m", H, unpadded(state.P), H) + noise ** 2
-  out = jnp.abs(innov) / jnp.sqrt(S)
-  return jnp.where(jnp.isfinite(out), out, 1e3)[:N_CHANNELS]
+  S = _hph(H, state.P, N_CHANNELS) + noise[:N_CHANNELS] ** 2
+  out = jnp.abs(innov[:N_CHANNELS]) / jnp.sqrt(S)
+  return jnp.where(jnp.isfinite(out), out, 1e3)
+
+
+def _hph(H, P, n_rows: int):
+  """h_i' P h_i [n_rows] of the first n_rows rows of H [13, 15], P symmetric (either layout), over H's structural
+  non-zeros only (_H_SUPPORT): sums of scalar products, which XLA fuses (an einsum is a batched-matmul kernel of its
+  own under vmap, every tick on a GPU)."""
+  out = []
+  for i in range(n_rows):
+    sup = _H_SUPPORT[i]
+    h = [H[i, c] for c in sup]
+    out.append(sum(h[a] * h[a] * P[sup[a], sup[a]] for a in range(len(sup)))
+               + 2.0 * sum(h[a] * h[b] * P[sup[a], sup[b]] for a in range(len(sup)) for b in range(a)))
+  return jnp.stack(out)
 
 
 def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stale: tuple = (),

@@ -456,7 +456,7 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
   r = quat_to_rot(ekf.quat)
   dyaw = readings.mag_yaw - jnp.arctan2(r[1, 0], r[0, 0])
   c, s = jnp.cos(dyaw), jnp.sin(dyaw)
-  r_m = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ r   # EKF tilt, magnetometer heading
+  r_m = jnp.stack([c * r[0] - s * r[1], s * r[0] + c * r[1], r[2]])   # Rz(dyaw) r: EKF tilt, magnetometer heading
   vb = math3d.matvec_t(r, ekf.vel)
   if cfg.vehicle == "drone":
     fresh = readings.flow_fresh > 0.5
@@ -468,7 +468,7 @@ def position_check(cfg: DetectorConfig, state: DetectorState, readings: SensorRe
     aid = jnp.where(fresh, jnp.stack([readings.odom_speed, 0.0]), state.aid)
     body = jnp.tile(jnp.concatenate([aid[:1], jnp.zeros(2)])[None], (2, 1))
   aid_age = jnp.where(fresh, 0.0, state.aid_age + dt)
-  vw = jnp.concatenate([(body @ r.T)[:, :2], (body @ r_m.T)[:, :2]])                                     # [4, 2]
+  vw = jnp.concatenate([math3d.matvec(r, body)[:, :2], math3d.matvec(r_m, body)[:, :2]])   # [4, 2]: R b per row b
   ok = (aid_age < 0.5) & jnp.all(jnp.isfinite(vw))
   v = jnp.where(ok, vw, ekf.vel[None, :2])
   aid_vel = jnp.where(jnp.isfinite(state.aid_vel), state.aid_vel, v[0])

@@ -30,15 +30,25 @@ def ckpt_init(window: int, n_x: int, n_u: int) -> CheckpointState:
 
 def ckpt_update(c: CheckpointState, x, u, alarm) -> CheckpointState:
   """Record (x [n_x], u [n_u]) unless `alarm` ([] bool/0-1) is up; while it is, the buffer is frozen untouched and
-  recording resumes on the first update after it clears."""
+  recording resumes on the first update after it clears.
+
+  Writes the head row only (with its old value while frozen): a one-row scatter, which XLA does in place in a loop,
+  where a select between the old and the updated ring rewrites all W rows every tick."""
   alarm = jnp.asarray(alarm) > 0
   w = c.states.shape[0]
-  states = jnp.where(alarm, c.states, c.states.at[c.head].set(x))
-  controls = jnp.where(alarm, c.controls, c.controls.at[c.head].set(u))
+  states = c.states.at[c.head].set(jnp.where(alarm, c.states[c.head], x))
+  controls = c.controls.at[c.head].set(jnp.where(alarm, c.controls[c.head], u))
   head = jnp.where(alarm, c.head, (c.head + 1) % w)
   count = jnp.where(alarm, c.count, jnp.minimum(c.count + 1, w))
   return CheckpointState(states=states, controls=controls, head=head.astype(jnp.int32),
                          count=count.astype(jnp.int32), frozen=alarm)
+
+
+def ckpt_slot(c: CheckpointState, k):
+  """Ring slot (int32, any shape) of the ordered indices k (oldest -> newest, as in `ckpt_ordered`; clipped to the
+  ring): reads one entry where `ckpt_ordered` gathers all W."""
+  w = c.states.shape[0]
+  return (c.head + jnp.clip(k, 0, w - 1)) % w
 
 
 def ckpt_get(c: CheckpointState, age):

@@ -61,13 +61,15 @@ def _features(s: DynState, u):
 
 def specific_force(p: DynParams, s: DynState, u):
   """[3] predicted body-frame specific force (m/s^2), i.e. what a bias-free accelerometer would read."""
-  return p.w_lin @ _features(s, u)[1]
+  return math3d.matvec(p.w_lin, _features(s, u)[1])
 
 
 def derivatives(p: DynParams, s: DynState, u):
   """(world acceleration [3] m/s^2, body angular acceleration [3] rad/s^2) predicted at state s under controls u."""
   r, phi_lin, phi_ang = _features(s, u)
-  return r @ (p.w_lin @ phi_lin) + G, p.w_ang @ phi_ang
+  # component-wise products (math3d): under vmap a `w @ phi` per step was a small GEMM kernel of its own, ~20 per
+  # autopilot tick in the reconstruction's replay
+  return math3d.matvec(r, math3d.matvec(p.w_lin, phi_lin)) + G, math3d.matvec(p.w_ang, phi_ang)
 
 
 def step(p: DynParams, s: DynState, u, dt) -> DynState:

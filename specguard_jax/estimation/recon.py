@@ -232,12 +232,12 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   uh, fh = u / jnp.maximum(nu, 1e-6), f / jnp.maximum(nf, 1e-6)
   qz = jnp.stack([jnp.cos(0.5 * yaw), 0.0, 0.0, jnp.sin(0.5 * yaw)])
   uy = math3d.matvec_t(math3d.quat_to_rot(qz), uh)                                             # a - g in the yaw frame
-  qt = jnp.concatenate([jnp.reshape(1.0 + fh @ uy, (1,)), jnp.cross(fh, uy)])     # shortest rotation fh -> uy
-  q_acc = math3d.quat_mul(qz, qt / jnp.maximum(jnp.linalg.norm(qt), 1e-6))
-  off = jnp.arccos(jnp.clip((math3d.quat_to_rot(quat) @ fh) @ uh, -1.0, 1.0))     # shadow's tilt vs the reference
-  acc_ok = (gps_ok & jnp.all(jnp.isfinite(state.gvel)) & (nf > 3.0) & (nu > 3.0) & (fh @ uy > 0.0)
+  qt = jnp.concatenate([jnp.reshape(1.0 + math3d.dot(fh, uy), (1,)), jnp.cross(fh, uy)])   # shortest rotation fh -> uy
+  q_acc = math3d.quat_mul(qz, qt / jnp.maximum(math3d.norm(qt), 1e-6))
+  off = jnp.arccos(jnp.clip(math3d.dot(math3d.matvec(math3d.quat_to_rot(quat), fh), uh), -1.0, 1.0))   # shadow's tilt
+  acc_ok = (gps_ok & jnp.all(jnp.isfinite(state.gvel)) & (nf > 3.0) & (nu > 3.0) & (math3d.dot(fh, uy) > 0.0)
             & (off > cfg.relevel_min_tilt))
-  quat = jnp.where(acc_ok, q_acc / jnp.linalg.norm(q_acc), quat)
+  quat = jnp.where(acc_ok, q_acc / math3d.norm(q_acc), quat)
   p = ekf_lib.reset_block(shadow.P, _TILT_IDX, cfg.relevel_tilt_sigma ** 2, do)
   p = ekf_lib.reset_block(p, _YAW_IDX, jnp.where(mag_ok, ecfg.mag_heading_noise ** 2, ecfg.init_yaw_sigma ** 2), do)
   p = ekf_lib.reset_block(p, _VEL_IDX, jnp.where(gps_ok, ecfg.gps_vel_noise ** 2, ecfg.init_vel_sigma ** 2), do)
@@ -282,24 +282,35 @@ def dependent_components(compromised_mask) -> jax.Array:
   return jnp.any(m[:, None] & jnp.asarray(SENSOR_DEPS), axis=0)
 
 
-def _start(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, dt):
-  """Shadow filter and model rate at the PREVIOUS tick, rolled forward from the checkpoint `lag` entries back."""
-  states, controls, valid = ck.ckpt_ordered(state.ckpt)
+def _ring_reads(cfg: ReconConfig, c: ck.CheckpointState):
+  """What a tick reads from the checkpoint ring, one entry per read (not the whole ring in order): (start [] int32,
+  the ordered index of the replay's checkpoint `lag` entries before the newest; its entry [N_CKPT]; the replay's
+  controls [lag, n_u] (those stored with entries start + 1 .. start + lag, clipped to the newest); the oldest trusted
+  entry [N_CKPT])."""
   w = cfg.window
   lag = min(cfg.lag, w - 1)
-  start = jnp.maximum(w - 1 - lag, w - state.ckpt.count)  # ordered index of the checkpoint (newest = w - 1)
-  e = _unpack(states[jnp.clip(start, 0, w - 1)])
+  start = jnp.maximum(w - 1 - lag, w - c.count)  # ordered index of the checkpoint (newest = w - 1)
+  return (start, c.states[ck.ckpt_slot(c, start)], c.controls[ck.ckpt_slot(c, start + 1 + jnp.arange(lag))],
+          ck.ckpt_get(c, w - 1)[0])
+
+
+def _start(cfg: ReconConfig, params: dyn.DynParams, start, entry, controls, ekf_state, dt):
+  """Shadow filter and model rate at the PREVIOUS tick, rolled forward from the checkpoint entry at ordered index
+  `start` over the controls stored after it ([lag, n_u]; see `_ring_reads`)."""
+  w = cfg.window
+  lag = controls.shape[0]
+  e = _unpack(entry)
   s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=_model_rate(cfg, e["rate"]))
 
   def body(i, s):
     j = start + 1 + i  # controls stored with entry j moved the vehicle from entry j-1 to entry j
-    s_new = dyn.step(params, s, controls[jnp.clip(j, 0, w - 1)], dt)
+    s_new = dyn.step(params, s, controls[i], dt)
     s_new = s_new.replace(rate=_model_rate(cfg, s_new.rate))
     return jax.tree.map(lambda a, b: jnp.where(j <= w - 1, a, b), s_new, s)
 
   # Unrolled on accelerators: a device while-loop costs a launch and a host sync per iteration (~30 us each on an
   # H100), and this replay runs every tick for every env (a vmapped branch computes both sides).
-  s = jax.lax.fori_loop(0, lag, body, s0, unroll=lag if jax.default_backend() != "cpu" else 1)
+  s = jax.lax.fori_loop(0, lag, body, s0, unroll=max(lag, 1) if jax.default_backend() != "cpu" else 1)
   shadow = ekf_state.replace(pos=s.pos, vel=s.vel, quat=s.quat, gyro_bias=e["gyro_bias"],
                              accel_bias=e["accel_bias"], gps_pos_age=jnp.zeros(()), gps_vel_age=jnp.zeros(()),
                              hgt_age=jnp.zeros(()))
@@ -350,7 +361,13 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   x_meas = input_vector(ekf_state, readings)
   rising = alarm & ~state.active
   falling = state.active & ~alarm   # the recovery switch hands back on this tick
-  shadow0, rate0 = _start(cfg, params, state, ekf_state, dt)
+  start, entry, replay_controls, oldest = _ring_reads(cfg, state.ckpt)
+  # Every read of the old ring before this tick's entry is written into it in place (ckpt_update below): without
+  # the ordering XLA would copy the whole ring every tick to keep the old one alive for a late read.
+  ring, (entry, replay_controls, oldest) = jax.lax.optimization_barrier(
+      (state.ckpt, (entry, replay_controls, oldest)))
+  e_old = _unpack(oldest)   # oldest trusted entry
+  shadow0, rate0 = _start(cfg, params, start, entry, replay_controls, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
   rate = jnp.where(rising, rate0, state.rate)
   # A newly replaced accelerometer: the accel-bias state restarts (zero, model_accel_sigma) to learn the model's error.
@@ -360,7 +377,6 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # ... and one no longer blamed while the alarm stays up (the diagnosis changed): the sensor is back, its bias state
   # returns to the last trusted estimate (the model-error state it held drove a GPS-free shadow off course).
   un_accel = alarm & ~rising & ~mask[ai] & (state.blamed[ai] > 0)
-  e_old = _unpack(ck.ckpt_get(state.ckpt, cfg.window - 1)[0])   # oldest trusted entry
   shadow = shadow.replace(accel_bias=jnp.where(un_accel, e_old["accel_bias"], shadow.accel_bias),
                           P=ekf_lib.reset_block(shadow.P, _ABIAS_IDX, cfg.ekf_cfg().init_accel_bias_sigma ** 2,
                                                 un_accel))
@@ -408,8 +424,10 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # process noise (the accel-bias state restarts when the accelerometer is newly replaced, above).
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
   qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
-  q_diag = jnp.zeros(shadow.P.shape[-1]).at[ekf_lib.GBIAS].set(q).at[ekf_lib.ABIAS].set(qa)   # P of either layout
-  shadow = shadow.replace(P=shadow.P + jnp.diag(q_diag))
+  n = shadow.P.shape[-1]   # P of either layout; the diagonal as selects (elementwise, no scatter)
+  gb, ab = (np.isin(np.arange(n), _GBIAS_IDX), np.isin(np.arange(n), _ABIAS_IDX))
+  q_diag = jnp.where(gb, q, jnp.where(ab, qa, 0.0))
+  shadow = shadow.replace(P=shadow.P + np.eye(n, dtype=np.float32) * q_diag[None, :])
   shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
   shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
@@ -426,20 +444,20 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   z = ekf_lib.normalized_innovations(cfg.ekf_cfg(), shadow, readings)
   fresh = jnp.stack([readings.gps_fresh] * 6 + [readings.baro_fresh, readings.mag_fresh] + [readings.flow_fresh] * 2
                     + [jnp.zeros(())]) > 0.5
-  sampled = (jnp.asarray(_CHANNEL_MASK) @ mask.astype(jnp.float32) > 0) & fresh
+  sampled = (math3d.matvec(jnp.asarray(_CHANNEL_MASK), mask.astype(jnp.float32)) > 0) & fresh
   bad = jnp.any(sampled & (z > cfg.consistency_sigma))
   # (held between samples; a diagnosis that changes drops what the previous mask's sensors said)
   same = jnp.all(mask == (state.blamed > 0))
   suspect = alarm & jnp.where(jnp.any(sampled), bad, state.suspect & same)
 
-  ckpt = ck.ckpt_update(state.ckpt, _entry(ekf_state, readings), controls, alarm)
+  ckpt = ck.ckpt_update(ring, _entry(ekf_state, readings), controls, alarm)
   # On the hand-back tick the trusted estimate is still the shadow's (the env re-syncs the autopilot's EKF to it,
   # so the autopilot does not resume on a filter that fused the attack); its gating timers start afresh.
   on = alarm | falling
   zero = jnp.zeros(())
   # A replaced gyro / accelerometer comes back on the hand-back tick: its bias states return to the last trusted
   # (pre-alarm) estimate with their initial uncertainty (the shadow's described the model's error, not the sensor's).
-  e = _unpack(ck.ckpt_get(state.ckpt, cfg.window - 1)[0])   # oldest trusted entry
+  e = e_old
   back_g, back_a = falling & (state.blamed[gi] > 0), falling & (state.blamed[ai] > 0)
   ecfg = cfg.ekf_cfg()
   p_back = ekf_lib.reset_block(shadow.P, _GBIAS_IDX, ecfg.init_gyro_bias_sigma ** 2, back_g)
