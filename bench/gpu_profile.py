@@ -8,8 +8,8 @@
 
 The function is compiled ahead of time, so every GPU kernel event of the trace (its `hlo_op`) can be mapped to the
 instruction's `op_name` in the optimised HLO, whose name stack carries the `jax.named_scope`s of ppo/iteration.py
-and envs/ (rollout: policy, env_step > sensors, ekf, detector, reconstruction, navigator, autopilot, physics,
-stl_reward, collision, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
+and envs/ (rollout: policy, env_step > sensors, ekf, detector, reconstruction (> recon_replay, shadow_ekf),
+navigator, autopilot, physics, stl_reward, collision, autoreset; then pool_refresh, gae, ppo_update). Prints the GPU time per stage (the innermost named scope
 a kernel's fusion root carries, or for kernels without metadata the scope of their fused computation or operands;
 XLA fuses across scope boundaries, so a fused kernel counts once, to its root's scope), the largest kernels, and the
 host's share (wall time of the call minus the GPU's busy time).
@@ -33,8 +33,8 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 # Innermost first: a kernel is charged to the first of these found in its op_name's scope path.
-STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "reconstruction", "navigator", "stl_reward",
-          "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "values",
+STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "recon_replay", "shadow_ekf", "reconstruction",
+          "navigator", "stl_reward", "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "values",
           "episode_stats", "pool_refresh", "gae", "ppo_update")   # bootstrap_value: traces of code before session 18
 _COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
 _DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")

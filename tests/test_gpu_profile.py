@@ -33,6 +33,9 @@ def test_op_names_and_stages():
   assert gpu_profile.stage_of(names["tanh.1"]) == "ppo_update"
   assert gpu_profile.stage_of("jit(run)/while/body/env_step/vmap()/autopilot/physics/step/euler") == "physics"
   assert gpu_profile.stage_of("jit(run)/while/body/closed_call") == "other"
+  assert gpu_profile.stage_of("jit(run)/env_step/vmap()/reconstruction/shadow_ekf/add") == "shadow_ekf"
+  assert gpu_profile.stage_of("jit(run)/env_step/vmap()/reconstruction/recon_replay/mul") == "recon_replay"
+  assert gpu_profile.stage_of("jit(run)/env_step/vmap()/reconstruction/scatter") == "reconstruction"
   assert gpu_profile.stage_of("jit(run)/ekfish/x") == "other"     # whole scope names only
 
 

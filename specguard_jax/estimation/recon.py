@@ -367,7 +367,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   ring, (entry, replay_controls, oldest) = jax.lax.optimization_barrier(
       (state.ckpt, (entry, replay_controls, oldest)))
   e_old = _unpack(oldest)   # oldest trusted entry
-  shadow0, rate0 = _start(cfg, params, start, entry, replay_controls, ekf_state, dt)
+  with jax.named_scope("recon_replay"):   # (a profiling scope: bench/gpu_profile.py's stages)
+    shadow0, rate0 = _start(cfg, params, start, entry, replay_controls, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
   rate = jnp.where(rising, rate0, state.rate)
   # A newly replaced accelerometer: the accel-bias state restarts (zero, model_accel_sigma) to learn the model's error.
@@ -429,7 +430,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   q_diag = jnp.where(gb, q, jnp.where(ab, qa, 0.0))
   shadow = shadow.replace(P=shadow.P + np.eye(n, dtype=np.float32) * q_diag[None, :])
   shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
-  shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
+  with jax.named_scope("shadow_ekf"):
+    shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)
   rate_new = rd.gyro - shadow.gyro_bias
   # ... with the correction folded into it: the gyro-bias state (the model rate's error) restarts at zero every tick,
