@@ -108,3 +108,34 @@ def test_min_sdf_on_segment_matches_dense_sampling():
     dense = float(jnp.min(jax.vmap(lambda t: f(a + t * (b - a)))(ts)))
     assert got <= dense + 1e-4
     assert got >= dense - 5e-3  # dense grid spacing bound
+
+
+def _golden_reference(f, iters):
+  """The classic golden-section search in float64 (interior points m1 < m2 swapped each iteration), returning what
+  min_sdf_on_segment returns: min(f(m1), f(m2), f(mid of the last interval), f(0), f(1))."""
+  phi = 0.6180339887498949
+  lo, hi, m1, m2 = 0.0, 1.0, 1.0 - phi, phi
+  f1, f2 = f(m1), f(m2)
+  for _ in range(iters):
+    if f1 <= f2:
+      hi = m2
+      m1, m2, f2 = hi - phi * (hi - lo), m1, f1
+      f1 = f(m1)
+    else:
+      lo = m1
+      m1, m2, f1 = m2, lo + phi * (hi - lo), f2
+      f2 = f(m2)
+  return min(f1, f2, f(0.5 * (lo + hi)), f(0.0), f(1.0))
+
+
+def test_min_sdf_on_segment_takes_the_classic_golden_section_steps():
+  """The slot form (no swap in the loop state) visits the classic search's points: after 1..9 iterations its result
+  equals a float64 reference of the classic search (a role mix-up would drift the interval off the minimum)."""
+  rng = np.random.default_rng(2)
+  for _ in range(10):
+    c, w = rng.uniform(-0.3, 1.3), rng.uniform(0.5, 3.0)
+    for iters in range(1, 10):
+      got = float(g.min_sdf_on_segment(lambda p: w * jnp.abs(p[0] - c) + p[1], jnp.zeros(3, jnp.float32),
+                                       jnp.array([1.0, 0.0, 0.0], jnp.float32), iters))
+      want = _golden_reference(lambda t: w * abs(t - c), iters)
+      assert abs(got - want) <= 1e-5 * (1.0 + abs(want)), (c, w, iters, got, want)
