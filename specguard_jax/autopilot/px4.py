@@ -140,10 +140,9 @@ def velocity_control(p: MulticopterParams, cs: MCControlState, vel_sp, vel, dt):
   # Horizontal acceleration limit (PX4: the tilt limit; see the module docstring).
   h = math3d.norm(acc_sp[:2]) + 1e-9
   saturated = h > p.acc_hor_max
-  horizontal = jnp.arange(3) < 2
-  acc_sp = jnp.where(horizontal, acc_sp * jnp.minimum(1.0, p.acc_hor_max / h), acc_sp)
+  acc_sp = math3d.scale_head(acc_sp, 2, jnp.minimum(1.0, p.acc_hor_max / h))
   # Anti-windup (as PX4): the horizontal integrator only integrates while the horizontal output is not saturated.
-  grow = jnp.where(horizontal & saturated, 0.0, 1.0)
+  grow = jnp.where((jnp.arange(3) < 2) & saturated, 0.0, 1.0)
   lim = jnp.array([p.vel_int_lim, p.vel_int_lim, p.vel_int_lim_z])
   vel_int = jnp.clip(cs.vel_int + grow * ki * err * dt, -lim, lim)
   return acc_sp, cs.replace(vel_int=vel_int, prev_vel=vel)

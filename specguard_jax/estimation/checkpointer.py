@@ -63,6 +63,6 @@ def ckpt_get(c: CheckpointState, age):
 def ckpt_ordered(c: CheckpointState):
   """The ring oldest -> newest: (states [W, n_x], controls [W, n_u], valid [W] bool)."""
   w = c.states.shape[0]
-  idx = (c.head + jnp.arange(w)) % w
+  idx = ckpt_slot(c, jnp.arange(w))
   valid = jnp.arange(w) >= w - c.count
   return c.states[idx], c.controls[idx], valid

@@ -459,7 +459,6 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   zero = jnp.zeros(())
   # A replaced gyro / accelerometer comes back on the hand-back tick: its bias states return to the last trusted
   # (pre-alarm) estimate with their initial uncertainty (the shadow's described the model's error, not the sensor's).
-  e = e_old
   back_g, back_a = falling & (state.blamed[gi] > 0), falling & (state.blamed[ai] > 0)
   ecfg = cfg.ekf_cfg()
   p_back = ekf_lib.reset_block(shadow.P, _GBIAS_IDX, ecfg.init_gyro_bias_sigma ** 2, back_g)
@@ -467,8 +466,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   shadow_out = shadow.replace(gps_pos_age=jnp.where(falling, zero, shadow.gps_pos_age),
                               gps_vel_age=jnp.where(falling, zero, shadow.gps_vel_age),
                               hgt_age=jnp.where(falling, zero, shadow.hgt_age),
-                              gyro_bias=jnp.where(back_g, e["gyro_bias"], shadow.gyro_bias),
-                              accel_bias=jnp.where(back_a, e["accel_bias"], shadow.accel_bias), P=p_back)
+                              gyro_bias=jnp.where(back_g, e_old["gyro_bias"], shadow.gyro_bias),
+                              accel_bias=jnp.where(back_a, e_old["accel_bias"], shadow.accel_bias), P=p_back)
   trusted = jax.tree.map(lambda a, b: jnp.where(on, a, b), shadow_out, ekf_state)
   trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)   # sensors back on hand-back
   new = ReconState(**_gravity_ref(cfg, state, readings, f_b, dt), ckpt=ckpt, shadow=trusted,
