@@ -43,35 +43,51 @@ def dist_point_segment(p: jnp.ndarray, a: jnp.ndarray, b: jnp.ndarray) -> jnp.nd
   return safe_norm(p - closest_point_segment(p, a, b))
 
 
+def _safe_hypot(*xs: jnp.ndarray) -> jnp.ndarray:
+  """sqrt(x0^2 + x1^2 + ...) of a few same-shaped components, with a finite (zero) gradient at 0: `safe_norm` of the
+  stacked components, written on the components so that under vmap it is elementwise work over the batch (XLA fuses
+  it into its neighbours) instead of a stack and a reduction over a tiny axis (a kernel of its own on a GPU)."""
+  sq = xs[0] * xs[0]
+  for x in xs[1:]:
+    sq = sq + x * x
+  pos = sq > 0.0
+  return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
 def sdf_cylinder(p: jnp.ndarray, cyl: jnp.ndarray) -> jnp.ndarray:
   """Signed distance from p [3] to the vertical cylinder cyl [4] = (x, y, radius, height) standing on z = 0, m."""
-  d_r = safe_norm(p[:2] - cyl[:2]) - cyl[2]
+  d_r = _safe_hypot(p[0] - cyl[0], p[1] - cyl[1]) - cyl[2]
   half_h = 0.5 * cyl[3]
   d_z = jnp.abs(p[2] - half_h) - half_h
-  q = jnp.stack([d_r, d_z])
-  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+  return jnp.minimum(jnp.maximum(d_r, d_z), 0.0) + _safe_hypot(jnp.maximum(d_r, 0.0), jnp.maximum(d_z, 0.0))
 
 
-def _box_local_xy(p_xy: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
-  """p_xy [2] expressed in the box frame (centre at the origin, axes along the box), [2]."""
+def _box_local_xy(p_xy: jnp.ndarray, box: jnp.ndarray):
+  """p_xy [2] expressed in the box frame (centre at the origin, axes along the box): its two coordinates []."""
   c, s = jnp.cos(box[4]), jnp.sin(box[4])
-  d = p_xy - box[:2]
-  return jnp.stack([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+  d0, d1 = p_xy[0] - box[0], p_xy[1] - box[1]
+  return c * d0 + s * d1, -s * d0 + c * d1
+
+
+def _sdf_orthotope(*q: jnp.ndarray) -> jnp.ndarray:
+  """Signed distance to an axis-aligned box from the per-axis excesses q_k = |x_k - centre_k| - half_k []."""
+  inside = q[0]
+  for x in q[1:]:
+    inside = jnp.maximum(inside, x)
+  return jnp.minimum(inside, 0.0) + _safe_hypot(*(jnp.maximum(x, 0.0) for x in q))
 
 
 def sdf_box(p: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
   """Signed distance from p [3] to the oriented prism box [6] = (cx, cy, half_x, half_y, yaw, height) on z = 0, m."""
-  loc = _box_local_xy(p[:2], box)
+  l0, l1 = _box_local_xy(p, box)
   half_h = 0.5 * box[5]
-  q = jnp.stack([jnp.abs(loc[0]) - box[2], jnp.abs(loc[1]) - box[3], jnp.abs(p[2] - half_h) - half_h])
-  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+  return _sdf_orthotope(jnp.abs(l0) - box[2], jnp.abs(l1) - box[3], jnp.abs(p[2] - half_h) - half_h)
 
 
 def sdf_box_xy(p_xy: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
   """Signed horizontal distance from p_xy [2] to the footprint of box [6] (> 0 outside the footprint), m."""
-  loc = _box_local_xy(p_xy, box)
-  q = jnp.abs(loc) - box[2:4]
-  return jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
+  l0, l1 = _box_local_xy(p_xy, box)
+  return _sdf_orthotope(jnp.abs(l0) - box[2], jnp.abs(l1) - box[3])
 
 
 def rect_inside_margin(p_xy: jnp.ndarray, rect: jnp.ndarray) -> jnp.ndarray:
@@ -79,11 +95,9 @@ def rect_inside_margin(p_xy: jnp.ndarray, rect: jnp.ndarray) -> jnp.ndarray:
 
   > 0 inside (distance to the nearest edge), < 0 outside (minus the distance to the rectangle), m. Returns [].
   """
-  centre = jnp.stack([0.5 * (rect[0] + rect[1]), 0.5 * (rect[2] + rect[3])])
-  half = jnp.stack([0.5 * (rect[1] - rect[0]), 0.5 * (rect[3] - rect[2])])
-  q = jnp.abs(p_xy - centre) - half
-  sdf = jnp.minimum(jnp.max(q), 0.0) + safe_norm(jnp.maximum(q, 0.0))
-  return -sdf
+  q0 = jnp.abs(p_xy[0] - 0.5 * (rect[0] + rect[1])) - 0.5 * (rect[1] - rect[0])
+  q1 = jnp.abs(p_xy[1] - 0.5 * (rect[2] + rect[3])) - 0.5 * (rect[3] - rect[2])
+  return -_sdf_orthotope(q0, q1)
 
 
 def oriented_rect_inside_margin(p_xy: jnp.ndarray, centre: jnp.ndarray, half: jnp.ndarray,

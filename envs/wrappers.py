@@ -111,8 +111,16 @@ class AutoReset(Wrapper):
     pool, ref_ptr = info["reset_pool"], info["pool_refresh"]
     pool_n = pool.done.shape[0]
     key, sub = jax.random.split(info["reset_key"])
-    new = self.env.reset(jax.random.split(sub, n))
-    slots = (ref_ptr + jnp.arange(n)) % pool_n
-    pool = jax.tree.map(lambda p, x: p.at[slots].set(x), pool, new)
+    keys = jax.random.split(sub, n)
+    if n == pool_n:
+      # The whole pool (the trainer's bulk refresh with its default sizes): entry j goes to slot (ref_ptr + j) % n,
+      # so reset the keys in slot order and take the result as the pool. The same states as the scatter below
+      # without its one scatter kernel per state leaf (245 of the drone's 672 pool-refresh kernels per phase-1
+      # iteration on an H100, BENCHMARKS.md session 28).
+      pool = self.env.reset(keys[(jnp.arange(n) - ref_ptr) % n])
+    else:
+      new = self.env.reset(keys)
+      slots = (ref_ptr + jnp.arange(n)) % pool_n
+      pool = jax.tree.map(lambda p, x: p.at[slots].set(x), pool, new)
     return state.replace(info=dict(info, reset_pool=pool, reset_key=key,
                                    pool_refresh=((ref_ptr + n) % pool_n).astype(jnp.int32)))

@@ -316,6 +316,16 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
   wp3 = np.asarray(s_bulk3.info["reset_pool"].info["mission"].waypoints)
   changed = [not np.allclose(wp3[i], pool0[i]) for i in range(4)]
   assert changed == [True, True, True, False] and int(s_bulk3.info["pool_refresh"]) == 3
+  # The whole pool from a pointer at 3 (reset in slot order, no scatter): entry j of the round robin in slot (3 + j) % 4
+  s_all = refresh(s_bulk3, 4)
+  assert int(s_all.info["pool_refresh"]) == 3
+  _, sub = jax.random.split(s_bulk3.info["reset_key"])
+  new = jax.jit(VmapWrapper(drone_env).reset)(jax.random.split(sub, 4))
+  slot_of_entry = [(3 + j) % 4 for j in range(4)]
+  for x, y in zip(jax.tree.leaves(new), jax.tree.leaves(s_all.info["reset_pool"])):
+    x, y = np.asarray(x), np.asarray(y)
+    np.testing.assert_allclose(y[slot_of_entry], x, rtol=1e-6, atol=1e-12)
+  assert not np.allclose(np.asarray(s_all.info["reset_pool"].info["mission"].waypoints)[3], wp3[3])
 
 
 def test_velocity_setpoint_override():
