@@ -24,7 +24,11 @@ FAR = 1e3
 
 def safe_norm(v: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
   """Euclidean norm along `axis`, exact, with a finite (zero) gradient at v = 0."""
-  sq = jnp.sum(v * v, axis=axis)
+  return _safe_sqrt(jnp.sum(v * v, axis=axis))
+
+
+def _safe_sqrt(sq: jnp.ndarray) -> jnp.ndarray:
+  """sqrt(sq) of a sum of squares sq >= 0, with a finite (zero) gradient at 0 (the double `where`)."""
   pos = sq > 0.0
   return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
@@ -47,11 +51,7 @@ def _safe_hypot(*xs: jnp.ndarray) -> jnp.ndarray:
   """sqrt(x0^2 + x1^2 + ...) of a few same-shaped components, with a finite (zero) gradient at 0: `safe_norm` of the
   stacked components, written on the components so that under vmap it is elementwise work over the batch (XLA fuses
   it into its neighbours) instead of a stack and a reduction over a tiny axis (a kernel of its own on a GPU)."""
-  sq = xs[0] * xs[0]
-  for x in xs[1:]:
-    sq = sq + x * x
-  pos = sq > 0.0
-  return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+  return _safe_sqrt(sum(x * x for x in xs))
 
 
 def sdf_cylinder(p: jnp.ndarray, cyl: jnp.ndarray) -> jnp.ndarray:
