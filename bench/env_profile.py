@@ -60,9 +60,9 @@ def main():
     rows.append((name, t, per_step))
     print(f"{name:34s} {t * 1e6:10.1f} us/call  x{per_step}", flush=True)
 
-  add("mjx.step (per-env model)", lambda d: V(lambda d, dr: mjx.step(env._model(dr), d))(d, sim["dr"]),
-      state.pipeline_state, k)
-  add("mjx.step (shared model)", lambda d: V(lambda d: mjx.step(env.mjx_model, d))(d), state.pipeline_state, k)
+  data = jax.jit(V(env.physics_data))(state.pipeline_state)   # a full mjx.Data per env, as raw MJX carries it
+  add("mjx.step (per-env model)", lambda d: V(lambda d, dr: mjx.step(env._model(dr), d))(d, sim["dr"]), data, k)
+  add("mjx.step (shared model)", lambda d: V(lambda d: mjx.step(env.mjx_model, d))(d), data, k)
   add("sensors.sense", lambda c: V(lambda s, t, kk: sensors_lib.sense(env.sensor_cfg, s, t, kk, dt)[0])(
       c, sim["truth"], keys), sim["sensors"], k)
   for fused in (False, True) if jax.default_backend() == "gpu" else (False,):

@@ -265,7 +265,8 @@ def main(argv=None):
       ticks = env.config.ticks_per_step
       phys = jax.vmap(lambda d: mjx.step(env.mjx_model, d))
       one = lambda d: jax.lax.fori_loop(0, ticks, lambda _, d: phys(d), d)   # noqa: E731
-      args, what = (st.pipeline_state,), f"raw MJX ({ticks} x mjx.step per env step)"
+      args = (jax.jit(jax.vmap(env.physics_data))(st.pipeline_state),)   # a full mjx.Data per env, as raw MJX has it
+      what = f"raw MJX ({ticks} x mjx.step per env step)"
     else:
       one = lambda s: jax.vmap(env.step)(s, act)   # noqa: E731
       args, what = (st,), (f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}, "

@@ -189,7 +189,7 @@ def breakdown(a, envs):
     return jax.lax.scan(lambda c, _: (fn(c), None), x, None, length=T)[0]
 
   rows = {}
-  d = s1.pipeline_state
+  d = jax.jit(jax.vmap(env.physics_data))(s1.pipeline_state)   # a full mjx.Data per env, as raw MJX carries it
   rows["physics (mjx.step x ticks)"] = _timed(lambda d: scan(
       lambda d: jax.lax.fori_loop(0, ticks, lambda _, d: jax.vmap(lambda d: mjx.step(env.mjx_model, d))(d), d), d), d)
   rows["env step, phase 1 (AutoReset(Vmap(env)))"] = _timed(

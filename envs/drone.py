@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 
 from envs import missions as missions_lib
-from envs.base import RAVEnv
+from envs.base import PhysicsState, RAVEnv
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax import sensors as sensors_lib
@@ -81,7 +81,7 @@ class DroneEnv(RAVEnv):
     flipped = up < jnp.cos(TILT_CRASH)
     return sim["vehicle"]["hit"] | flipped
 
-  def _vehicle_tick(self, data, sim, mission, vel_sp, leg_dir):
+  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir):
     dt = self.config.tick_dt
     ekf, readings, nav, veh, dr = sim["ekf"], sim["readings"], sim["nav"], sim["vehicle"], sim["dr"]
     # ---- autopilot ----
@@ -96,13 +96,13 @@ class DroneEnv(RAVEnv):
                                      rate_est, dt, armed)
     # ---- physics ----
     thrusts = rotors * dr["thrust_gain"]
-    v = data.qvel[:3]
+    v = phys.qvel[:3]
     v_rel = v - (dr["wind"] + sim["gust"])
     drag = -(DRAG_LIN * v_rel + DRAG_QUAD * math3d.norm(v_rel) * v_rel) * dr["drag_scale"]
-    rot_drag = -DRAG_ROT * data.qvel[3:6]
-    data = data.replace(ctrl=thrusts, qfrc_applied=jnp.concatenate([drag, rot_drag]))
+    rot_drag = -DRAG_ROT * phys.qvel[3:6]
     with jax.named_scope("physics"):
-      data = mjx.step(self._model(dr), data)
+      data = mjx.step(self._model(dr), self.physics_data(phys, ctrl=thrusts,
+                                                         qfrc_applied=jnp.concatenate([drag, rot_drag])))
     # ---- analytic ground (landing legs) ----
     z, vz = data.qpos[2], data.qvel[2]
     below = z <= GROUND_Z
@@ -117,8 +117,7 @@ class DroneEnv(RAVEnv):
     qvel = math3d.with_component(data.qvel, 2, jnp.where(below, jnp.maximum(vz, 0.0), vz))
     qvel = jnp.where(resting, jnp.zeros(6), qvel)
     acc = jnp.where(resting, jnp.zeros(3), data.qacc[:3])
-    data = data.replace(qpos=qpos, qvel=qvel)
     quat = qpos[3:7]
     truth = TrueState(pos=qpos[:3], vel=qvel[:3], quat=quat, ang_vel=qvel[3:6], acc=acc)
     veh = {"yaw_hold": yaw_hold, "on_ground": below, "hit": veh["hit"] | impact | unplanned, "rotors": thrusts}
-    return data, dict(sim, truth=truth, ctrl=ctrl, vehicle=veh)
+    return PhysicsState.of(data.replace(qpos=qpos, qvel=qvel)), dict(sim, truth=truth, ctrl=ctrl, vehicle=veh)

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 
 from envs import missions as missions_lib
-from envs.base import RAVEnv
+from envs.base import PhysicsState, RAVEnv
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax import sensors as sensors_lib
@@ -78,7 +78,7 @@ class RoverEnv(RAVEnv):
   def _vehicle_extra_init(self):
     return {"steer": jnp.zeros(()), "throttle": jnp.zeros(())}
 
-  def _vehicle_tick(self, data, sim, mission, vel_sp, leg_dir):
+  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir):
     dt = self.config.tick_dt
     p = self.rover_params
     ekf, veh, dr = sim["ekf"], sim["vehicle"], sim["dr"]
@@ -88,8 +88,8 @@ class RoverEnv(RAVEnv):
                                                         armed=jnp.ones((), bool))
     steer = veh["steer"] + jnp.clip(steer_cmd - veh["steer"], -STEER_RATE * dt, STEER_RATE * dt)
     # ---- tyre forces (body frame) ----
-    x, y, yaw = data.qpos[0], data.qpos[1], data.qpos[2]
-    vx, vy, r = data.qvel[0], data.qvel[1], data.qvel[2]
+    yaw = phys.qpos[2]
+    vx, vy, r = phys.qvel[0], phys.qvel[1], phys.qvel[2]
     c, s = jnp.cos(yaw), jnp.sin(yaw)
     u = c * vx + s * vy
     v = -s * vx + c * vy
@@ -108,9 +108,8 @@ class RoverEnv(RAVEnv):
     fyb = fy_f * jnp.cos(steer) + fy_r
     mz = CG_FRONT * fy_f * jnp.cos(steer) - CG_REAR * fy_r
     qfrc = jnp.stack([c * fxb - s * fyb, s * fxb + c * fyb, mz])
-    data = data.replace(qfrc_applied=qfrc)
     with jax.named_scope("physics"):
-      data = mjx.step(self._model(dr), data)
+      data = mjx.step(self._model(dr), self.physics_data(phys, qfrc_applied=qfrc))
     truth = self._truth(data.qpos, data.qvel, data.qacc)
     veh = {"steer": steer, "throttle": throttle}
-    return data, dict(sim, truth=truth, ctrl=ctrl, vehicle=veh)
+    return PhysicsState.of(data), dict(sim, truth=truth, ctrl=ctrl, vehicle=veh)
