@@ -123,6 +123,59 @@ def test_update_on_raveled_params_equals_per_array_adam():
   assert new.opt_state.inner_state[1][0].mu.ndim == 1     # Adam's moments are one raveled vector
 
 
+def _one_sum_per_statistic_ppo_loss(agent, params, normalizer, batch, hp):
+  """The PPO loss as first written (one reduction per statistic)."""
+  from brax.training.acme import running_statistics
+  p = agent.ppo
+  x = jnp.clip(running_statistics.normalize(batch["obs"], normalizer), -agent.obs_clip, agent.obs_clip)
+  logp, ent = agent.policy.log_prob_entropy(params["policy"], x, batch["action"])
+  v = agent.value.apply({"params": params["value"]}, x)[..., 0]
+  mask, adv = batch["mask"], batch["adv"]
+  n = jnp.maximum(jnp.sum(mask), 1.0)
+  if p.normalize_advantage:
+    mu = jnp.sum(adv * mask) / n
+    adv = (adv - mu) / (jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8)
+  ratio = jnp.exp(logp - batch["logp"])
+  surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp["clip_eps"], 1.0 + hp["clip_eps"]) * adv)
+  pg_loss = -jnp.sum(surr * mask) / n
+  v_err = (v - batch["target"]) ** 2
+  if p.value_clip_eps > 0:
+    v_clip = batch["value"] + jnp.clip(v - batch["value"], -p.value_clip_eps, p.value_clip_eps)
+    v_err = jnp.maximum(v_err, (v_clip - batch["target"]) ** 2)
+  v_loss = 0.5 * jnp.mean(v_err)
+  entropy = jnp.sum(ent * mask) / n
+  loss = pg_loss + hp["vf_coef"] * v_loss - hp["ent_coef"] * entropy
+  approx_kl = jnp.sum(((ratio - 1.0) - (logp - batch["logp"])) * mask) / n
+  return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": approx_kl}
+
+
+@pytest.mark.parametrize("normalize,value_clip", [(True, 0.0), (True, 0.2), (False, 0.0)])
+def test_ppo_loss_equals_the_one_sum_per_statistic_form(normalize, value_clip):
+  """losses.ppo_loss takes its minibatch sums as stacked reductions; loss, statistics and gradient equal the
+  one-reduction-per-statistic form (masked rows included)."""
+  ppo = config.PPOConfig(normalize_advantage=normalize, value_clip_eps=value_clip)
+  sg, _ = iteration.make_agents(tiny(sg=ppo))
+  st = sg.init(jax.random.PRNGKey(0), 24)
+  ks = jax.random.split(jax.random.PRNGKey(3), 7)
+  n = 512
+  batch = {"obs": jax.random.normal(ks[0], (n, 24)), "action": jax.random.normal(ks[1], (n, 3)),
+           "logp": -3.0 + jax.random.normal(ks[2], (n,)), "value": jax.random.normal(ks[3], (n,)),
+           "adv": 3.0 + jax.random.normal(ks[4], (n,)), "target": jax.random.normal(ks[5], (n,)),
+           "mask": (jax.random.uniform(ks[6], (n,)) < 0.8).astype(jnp.float32)}
+  hp = {"clip_eps": ppo.clip_eps, "ent_coef": ppo.ent_coef, "vf_coef": ppo.vf_coef}
+  (loss, aux), g = jax.jit(jax.value_and_grad(lambda p: losses.ppo_loss(sg, p, st.normalizer, batch, hp),
+                                              has_aux=True))(st.params)
+  ref_fn = lambda p: _one_sum_per_statistic_ppo_loss(sg, p, st.normalizer, batch, hp)  # noqa: E731
+  (ref, ref_aux), g_ref = jax.jit(jax.value_and_grad(ref_fn, has_aux=True))(st.params)
+  np.testing.assert_allclose(loss, ref, rtol=1e-5, atol=1e-6)
+  for k in ref_aux:
+    np.testing.assert_allclose(aux[k], ref_aux[k], rtol=1e-5, atol=1e-6, err_msg=k)
+  for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g_ref)):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+  from jax.flatten_util import ravel_pytree
+  assert float(jnp.max(jnp.abs(ravel_pytree(g)[0]))) > 1e-3
+
+
 @pytest.mark.parametrize("phase", [1, 2])
 def test_carry_types_are_stable_so_calls_never_recompile(phase):
   """The carry a call returns has exactly the input's shapes/dtypes/weak types (else each call would recompile)."""

@@ -115,31 +115,48 @@ def gae(rewards, values, next_values, terminated, done, gamma: float, lam: float
 
 def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
   """Clipped PPO loss on a minibatch dict (obs, action, logp, value, adv, target, mask [..]). hp: {clip_eps,
-  ent_coef, vf_coef} as data (default: the agent's PPOConfig). Returns (loss, aux)."""
+  ent_coef, vf_coef} as data (default: the agent's PPOConfig). Returns (loss, aux).
+
+  The minibatch sums are taken as stacked reductions (mask count with the advantage sum; the surrogate, entropy,
+  value-error and KL terms together) rather than one per statistic: on a GPU each sum over a 65,536-row minibatch is
+  a launch-bound kernel or two of its own, 32 minibatch steps per training iteration (BENCHMARKS.md session 29;
+  tests/test_train.py::test_ppo_loss_equals_the_one_sum_per_statistic_form).
+  """
   p = agent.ppo
   hp = hp or {"clip_eps": p.clip_eps, "ent_coef": p.ent_coef, "vf_coef": p.vf_coef}
   x = jnp.clip(running_statistics.normalize(batch["obs"], normalizer), -agent.obs_clip, agent.obs_clip)
   logp, ent = agent.policy.log_prob_entropy(params["policy"], x, batch["action"])
   v = agent.value.apply({"params": params["value"]}, x)[..., 0]
   mask = batch["mask"]
-  n = jnp.maximum(jnp.sum(mask), 1.0)
   adv = batch["adv"]
+
+  def sums(*terms):   # [k] sums over the minibatch of k same-shaped terms, one reduction
+    return jnp.sum(jnp.stack([t.reshape(-1) for t in terms]), axis=1)
+
   if p.normalize_advantage:
-    mu = jnp.sum(adv * mask) / n
-    sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8
+    count, s1 = sums(mask, adv * mask)
+    n = jnp.maximum(count, 1.0)
+    mu = s1 / n
+    sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8   # a second pass: exact however far mu is from 0
     adv = (adv - mu) / sd
+  else:
+    n = jnp.maximum(jnp.sum(mask), 1.0)
   ratio = jnp.exp(logp - batch["logp"])
   surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp["clip_eps"], 1.0 + hp["clip_eps"]) * adv)
-  pg_loss = -jnp.sum(surr * mask) / n
   v_err = (v - batch["target"]) ** 2
   if p.value_clip_eps > 0:
     v_clip = batch["value"] + jnp.clip(v - batch["value"], -p.value_clip_eps, p.value_clip_eps)
     v_err = jnp.maximum(v_err, (v_clip - batch["target"]) ** 2)
-  v_loss = 0.5 * jnp.mean(v_err)
-  entropy = jnp.sum(ent * mask) / n
+  kl = jax.lax.stop_gradient((ratio - 1.0) - (logp - batch["logp"]))   # a diagnostic, not differentiated
+  s_surr, s_ent, s_verr, s_kl = sums(surr * mask, ent * mask, v_err, kl * mask)
+  pg_loss = -s_surr / n
+  v_loss = 0.5 * s_verr / v_err.size
+  entropy = s_ent / n
   loss = pg_loss + hp["vf_coef"] * v_loss - hp["ent_coef"] * entropy
-  approx_kl = jnp.sum(((ratio - 1.0) - (logp - batch["logp"])) * mask) / n
-  return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": approx_kl}
+  return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": s_kl / n}
+
+
+_LOSS_STATS = ("pg_loss", "v_loss", "entropy", "approx_kl")   # ppo_loss's aux, in this order
 
 
 def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constrain=None):
@@ -169,13 +186,15 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   grad_fn = jax.value_and_grad(loss_of_flat, has_aux=True)
 
   def minibatch(carry, mb):
-    theta, opt_state, skips = carry
+    theta, opt_state, skips, totals = carry
     (loss, aux), g = grad_fn(theta, constrain(mb))
     upd, new_opt = agent.optimizer.update(g, opt_state, theta)
     ok = jnp.isfinite(loss) & jnp.all(jnp.isfinite(g))
     theta = jnp.where(ok, theta + upd, theta)
     opt_state = jax.tree.map(lambda a, b: jnp.where(ok, a, b), new_opt, opt_state)
-    return (theta, opt_state, skips + (~ok).astype(jnp.int32)), dict(aux, loss=loss)
+    # the loss statistics as running totals in the carry (one small kernel per step, not a stacked output per name)
+    totals = totals + jnp.stack([loss] + [aux[k] for k in _LOSS_STATS])
+    return (theta, opt_state, skips + (~ok).astype(jnp.int32), totals), None
 
   def epoch(carry, k):
     keys = jax.random.split(k, groups) if groups > 1 else k[None]
@@ -185,9 +204,10 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
         (groups, p.num_minibatches, -1) + a.shape[2:]), 0, 1), flat)
     return jax.lax.scan(minibatch, carry, mbs)
 
-  init = (theta0, state.opt_state, jnp.zeros((), jnp.int32))
-  (theta, opt_state, skips), aux = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
+  init = (theta0, state.opt_state, jnp.zeros((), jnp.int32), jnp.zeros(1 + len(_LOSS_STATS), jnp.float32))
+  (theta, opt_state, skips, totals), _ = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
   params = unravel(theta)
-  aux = jax.tree.map(jnp.mean, aux)
+  means = totals / (p.update_epochs * p.num_minibatches)   # the loss statistics' means over all minibatch steps
+  aux = {name: means[i] for i, name in enumerate(("loss",) + _LOSS_STATS)}
   aux["nan_skips"] = skips
   return AgentState(params=params, opt_state=opt_state, normalizer=normalizer, updates=state.updates + 1), aux
