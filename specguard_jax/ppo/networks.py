@@ -23,7 +23,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu, "swish": nn.swish}
+@jax.custom_jvp
+def tanh_stored(x):
+  """tanh whose output is materialised and whose derivative, (1 + y)(1 - y), reads that output.
+
+  Flax's `nn.tanh` leaves XLA free to store the pre-activation (z + b) instead and to recompute tanh wherever y is read:
+  in the next layer's GEMM (a tanh in f32 on every operand load of XLA's Triton GEMM fusion) and in the backward's
+  derivative. On an H100 those GEMMs ran at ~46 us per [65,536 x 256] x [256 x 256] bf16 product against ~25 us for the
+  same shape without the activation in it (BENCHMARKS.md session 29). The optimization barrier makes the bias-add
+  kernel write y = tanh(z + b) and every reader load it. Same values as nn.tanh (y rounded to the layer's dtype either
+  way)."""
+  return jax.lax.optimization_barrier(jnp.tanh(x))
+
+
+@tanh_stored.defjvp
+def _tanh_stored_jvp(primals, tangents):
+  (x,), (dx,) = primals, tangents
+  y = tanh_stored(x)
+  return y, (dx + dx * y) * (1 - y)   # jax's own tanh rule, dx (1 + y)(1 - y): the same rounding
+
+
+ACTIVATIONS = {"tanh": tanh_stored, "relu": nn.relu, "elu": nn.elu, "swish": nn.swish}
 DIRECTIONS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float32)
 """[6, 3] unit moves of the paper's discrete actions {+x, -x, +y, -y, +z, -z} (yaw frame)."""
 ACTION_KINDS = ("discrete", "gaussian")
