@@ -93,6 +93,41 @@ def test_physics_options_step_like_mjx_defaults(vehicle, tmp_path):
 
 
 @pytest.mark.parametrize("vehicle", ["drone", "rover"])
+def test_physics_state_holds_all_that_mjx_step_reads(vehicle, drone_env, rover_env):
+  """The env carries an envs.base.PhysicsState, not an mjx.Data, so mjx.step must read nothing of the Data but those
+  fields and the tick's inputs: from a moving state, a Data whose every other field (kinematics, inertia, forces,
+  qacc, constraint and contact arrays) holds garbage steps to bit-identically what the clean Data and
+  env.physics_data(PhysicsState.of(data)) step to."""
+  from mujoco import mjx
+
+  from envs.base import PhysicsState
+  env = drone_env if vehicle == "drone" else rover_env
+  m = env.mjx_model
+  nu, nv = env.mj_model.nu, env.mj_model.nv
+  inputs = {"qfrc_applied": jnp.linspace(-2.0, 3.0, nv)}
+  if nu:
+    inputs["ctrl"] = jnp.linspace(3.0, 4.5, nu)
+  step = jax.jit(lambda d: mjx.step(m, d))
+  d = env.physics_data(PhysicsState.of(mjx.make_data(m)).replace(
+      qpos=jnp.asarray(env.mj_model.qpos0, jnp.float32) + 0.1, qvel=jnp.linspace(-1.0, 1.0, nv)), **inputs)
+  for _ in range(5):   # a state with non-zero velocities, forces and warm start
+    d = step(d).replace(**inputs)
+  kept = {f.name for f in dataclasses.fields(PhysicsState)} | set(inputs) | {
+      "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata"}
+  rng = np.random.default_rng(0)
+  noise = lambda x: (jnp.asarray(rng.normal(size=x.shape) * 7.0, x.dtype)   # noqa: E731
+                     if jnp.issubdtype(x.dtype, jnp.floating) else x)
+  dirty = d.replace(**{f.name: jax.tree.map(noise, getattr(d, f.name)) for f in dataclasses.fields(d)
+                       if f.name not in kept})
+  assert not np.array_equal(np.asarray(dirty.xpos), np.asarray(d.xpos))   # the garbage is there
+  outs = [step(x) for x in (d, dirty, env.physics_data(PhysicsState.of(d), **inputs))]
+  for name in ("qpos", "qvel", "qacc", "qacc_warmstart", "time"):
+    for o in outs[1:]:
+      np.testing.assert_array_equal(np.asarray(getattr(o, name)), np.asarray(getattr(outs[0], name)), err_msg=name)
+  assert float(jnp.max(jnp.abs(outs[0].qvel - d.qvel))) > 1e-4   # it moved
+
+
+@pytest.mark.parametrize("vehicle", ["drone", "rover"])
 def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env):
   """The autopilot alone completes every short mission with no collision, crash, stall or geofence entry, and every
   mission spec (online STL monitor over the whole episode) is satisfied."""
