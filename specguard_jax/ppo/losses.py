@@ -133,14 +133,12 @@ def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
   def sums(*terms):   # [k] sums over the minibatch of k same-shaped terms, one reduction
     return jnp.sum(jnp.stack([t.reshape(-1) for t in terms]), axis=1)
 
+  count, s_adv = sums(mask, adv * mask)   # s_adv is dead code (dropped) without advantage normalisation
+  n = jnp.maximum(count, 1.0)
   if p.normalize_advantage:
-    count, s1 = sums(mask, adv * mask)
-    n = jnp.maximum(count, 1.0)
-    mu = s1 / n
+    mu = s_adv / n
     sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8   # a second pass: exact however far mu is from 0
     adv = (adv - mu) / sd
-  else:
-    n = jnp.maximum(jnp.sum(mask), 1.0)
   ratio = jnp.exp(logp - batch["logp"])
   surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp["clip_eps"], 1.0 + hp["clip_eps"]) * adv)
   v_err = (v - batch["target"]) ** 2

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+
 @jax.custom_jvp
 def tanh_stored(x):
   """tanh whose output is materialised and whose derivative, (1 + y)(1 - y), reads that output.
