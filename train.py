@@ -100,9 +100,9 @@ def parse_args(argv=None):
                   help="compile phase 2 and the held-out evaluation on background threads while phase 1 compiles "
                        "and trains (default: on unless the backend is the CPU)")
   ap.add_argument("--deterministic-gpu", action="store_true",
-                  help="XLA's deterministic GPU ops (XLA_FLAGS=%s): a cold-compiled GPU run repeats bit for bit "
-                       "(without it only a run reusing the compile cache's programs does); H100: -29 %% env steps/s"
-                       % DETERMINISTIC_XLA_FLAG)
+                  help=f"XLA's deterministic GPU ops (XLA_FLAGS={DETERMINISTIC_XLA_FLAG}): a cold-compiled GPU run "
+                       "repeats bit for bit (without it only a run reusing the compile cache's programs does); "
+                       "H100: -29 %% env steps/s")
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")

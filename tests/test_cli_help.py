@@ -1,0 +1,15 @@
+"""Every command-line entry point prints its --help (argparse expands '%' in help texts, so a stray one crashes it)."""
+
+import importlib
+
+import pytest
+
+
+@pytest.mark.parametrize("module", ["train", "evaluate", "envs.fly", "specguard_jax.estimation.model_file",
+                                    "specguard_jax.detection.preset_file"])
+def test_help_prints_usage_and_exits_0(module, capsys):
+  main = importlib.import_module(module).main
+  with pytest.raises(SystemExit) as e:
+    main(["--help"])
+  assert e.value.code == 0
+  assert capsys.readouterr().out.startswith("usage:")
