@@ -92,6 +92,47 @@ def test_nan_gradients_never_reach_params():
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("groups", [1, 2])
+def test_chunked_minibatch_gradients_equal_the_whole_minibatchs(groups):
+  """losses.update with each minibatch's gradient summed over 4 chunks (what PPOConfig.max_rows_per_pass asks for
+  at large env counts) gives the same params, Adam state and loss statistics as one pass, with masked rows and
+  advantage normalisation over the whole minibatch, and with env groups."""
+  ppo = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-2)
+  cfg = tiny(sg=ppo)
+  sg, _ = iteration.make_agents(cfg)
+  st = losses.with_hparams(sg.init(jax.random.PRNGKey(0), 24), ppo)
+  ks = jax.random.split(jax.random.PRNGKey(1), 7)
+  T, B = 4, 16
+  batch = {"obs": jax.random.normal(ks[0], (T, B, 24)), "action": jax.random.normal(ks[1], (T, B, 3)),
+           "logp": jax.random.normal(ks[2], (T, B)), "value": jax.random.normal(ks[3], (T, B)),
+           "adv": 3.0 + jax.random.normal(ks[4], (T, B)), "target": jax.random.normal(ks[5], (T, B)),
+           "mask": (jax.random.uniform(ks[6], (T, B)) > 0.3).astype(jnp.float32)}
+  run = lambda c: jax.jit(lambda s, b, k: losses.update(sg, s, b, k, groups=groups, chunks=c))(  # noqa: E731
+      st, batch, jax.random.PRNGKey(2))
+  (one, aux1), (four, aux4) = run(1), run(4)
+  for a, b in zip(jax.tree.leaves((one.params, one.opt_state)), jax.tree.leaves((four.params, four.opt_state))):
+    np.testing.assert_allclose(a, b, rtol=2e-5, atol=2e-6)
+  for k in ("loss", "pg_loss", "v_loss", "entropy", "approx_kl"):
+    np.testing.assert_allclose(aux1[k], aux4[k], rtol=1e-5, atol=1e-6)
+  moved = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(one.params), jax.tree.leaves(st.params)))
+  assert moved > 1e-3
+  with pytest.raises(ValueError, match="chunks"):
+    run(3)
+
+
+def test_chunks_per_minibatch_caps_the_rows_of_one_pass_per_device():
+  ppo = config.PPOConfig(max_rows_per_pass=1 << 20)
+  rows = lambda envs: envs * 32 // ppo.num_minibatches  # noqa: E731   default unroll and minibatches, one group
+  assert losses.chunks_per_minibatch(ppo, rows(262_144), 1) == 1
+  assert losses.chunks_per_minibatch(ppo, rows(524_288), 1) == 2
+  assert losses.chunks_per_minibatch(ppo, rows(1_048_576), 1) == 4
+  assert losses.chunks_per_minibatch(ppo, rows(131_072), 4) == 2           # 4 groups (sweep members) on a device
+  assert losses.chunks_per_minibatch(config.PPOConfig(max_rows_per_pass=7), 12, 1) == 2   # fewest divisors that fit
+  assert losses.chunks_per_minibatch(config.PPOConfig(max_rows_per_pass=1), 12, 1) == 12
+  with pytest.raises(ValueError, match="max_rows_per_pass"):
+    tiny(sg=config.PPOConfig(max_rows_per_pass=0))
+
+
 def test_update_on_raveled_params_equals_per_array_adam():
   """losses.update runs Adam on the raveled params (one [P] vector); one epoch of one minibatch must equal optax's
   clip + Adam applied array by array to the gradient of the same loss (a minibatch is a permutation of the batch,

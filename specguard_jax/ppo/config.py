@@ -39,6 +39,11 @@ class PPOConfig:
   num_minibatches: int = 8
   update_epochs: int = 4
   normalize_advantage: bool = True
+  # Most minibatch rows one device runs through the networks in one forward + backward pass. A larger minibatch is
+  # cut into equal chunks whose gradients are summed (the same gradient up to float summation order), so the update's
+  # activations stop growing with the env count: 1 << 20 leaves every run up to 262,144 envs per device with the
+  # default unroll and minibatches one pass, and lets 1,048,576 envs fit an 80 GB GPU (BENCHMARKS.md session 32).
+  max_rows_per_pass: int = 1 << 20
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,6 +149,8 @@ class TrainConfig:
       if (self.num_envs * self.unroll_length) % p.num_minibatches:
         raise ValueError(f"num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible by "
                          f"{agent}.num_minibatches ({p.num_minibatches})")
+      if p.max_rows_per_pass < 1:
+        raise ValueError(f"{agent}.max_rows_per_pass must be >= 1, got {p.max_rows_per_pass}")
       if p.lr_schedule not in ("constant", "linear"):
         raise ValueError(f"unknown {agent}.lr_schedule {p.lr_schedule!r}; choose constant or linear")
       if not 0 < p.gamma <= 1 or not 0 <= p.gae_lambda <= 1:

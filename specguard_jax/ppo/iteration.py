@@ -189,6 +189,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   else:
     G = distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh)
   Bg = cfg.num_envs // G
+  # env groups one device holds (a sweep's members each keep their G groups on one device): sizes the network passes
+  groups_per_device = (members // mesh.size) * G if members else max(1, G // mesh.size)
   for name, p in (("sg", cfg.sg), ("aa", cfg.aa)):
     if (Bg * cfg.unroll_length) % p.num_minibatches:
       raise ValueError(f"num_envs / env_groups * unroll_length ({Bg * cfg.unroll_length}) must be divisible by "
@@ -301,10 +303,12 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   def values(agent, agent_state, tr, p, shifted: bool):
     """(V(obs), V(next_obs)), each [T, G, B/G], for a rollout's observations [T, G, B/G, n]: the value network
-    run after the rollout in a few large passes (2T / num_minibatches steps each), not inside every env step.
+    run after the rollout in a few large passes (2T / num_minibatches steps each, fewer where that would put more
+    than 2 x max_rows_per_pass rows on a device: forward only, half the update's rows' memory), not inside every
+    env step.
     shifted: next_obs[t] is obs[t+1] wherever the env did not finish (SG's; the attacker's observation holds the
     next setpoint), so V(next_obs) comes from V(obs) but at truncations (bootstrap_values)."""
-    per_pass = max(1, 2 * (T // p.num_minibatches))
+    per_pass = max(1, min(2 * (T // p.num_minibatches), 2 * p.max_rows_per_pass // (Bg * groups_per_device)))
     value_fn = functools.partial(agent.value_of, agent_state)
     with nets():
       if shifted and 1 + max_trunc < T:
@@ -326,7 +330,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   def upd(agent, state, batch, key):
     with jax.named_scope("ppo_update"), nets():
-      return losses.update(agent, state, batch, key, groups=G, constrain=shard)
+      chunks = losses.chunks_per_minibatch(agent.ppo, Bg * T // agent.ppo.num_minibatches, groups_per_device)
+      return losses.update(agent, state, batch, key, groups=G, constrain=shard, chunks=chunks)
 
   def one_iteration(carry: Carry, _, turn=None):
     """One iteration; turn: phase 2's learner (0 SG, 1 AA), from carry.iteration unless given (sweeps pass the

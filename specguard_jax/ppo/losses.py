@@ -113,9 +113,28 @@ def gae(rewards, values, next_values, terminated, done, gamma: float, lam: float
   return adv, adv + values
 
 
-def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
+def _sums(*terms):
+  """[k] sums of k same-shaped terms, one stacked reduction."""
+  return jnp.sum(jnp.stack([t.reshape(-1) for t in terms]), axis=1)
+
+
+def minibatch_norms(ppo: PPOConfig, batch) -> dict:
+  """What ppo_loss divides by, from a whole minibatch (mask, adv [..]): n (its unmasked rows, >= 1), size (all its
+  rows), and with advantage normalisation the advantages' masked mean mu and standard deviation sd. Passing a whole
+  minibatch's norms to ppo_loss on each of its chunks makes the chunks' losses (and gradients) sum to the whole's."""
+  mask, adv = batch["mask"], batch["adv"]
+  count, s_adv = _sums(mask, adv * mask)   # s_adv is dead code (dropped) without advantage normalisation
+  norms = {"n": jnp.maximum(count, 1.0), "size": mask.size}
+  if ppo.normalize_advantage:
+    norms["mu"] = s_adv / norms["n"]
+    norms["sd"] = jnp.sqrt(jnp.sum(mask * (adv - norms["mu"]) ** 2) / norms["n"]) + 1e-8   # exact however far mu is
+  return norms
+
+
+def ppo_loss(agent: Agent, params, normalizer, batch, hp=None, norms=None):
   """Clipped PPO loss on a minibatch dict (obs, action, logp, value, adv, target, mask [..]). hp: {clip_eps,
-  ent_coef, vf_coef} as data (default: the agent's PPOConfig). Returns (loss, aux).
+  ent_coef, vf_coef} as data (default: the agent's PPOConfig). norms: minibatch_norms of the whole minibatch when
+  `batch` is one chunk of it (default: of `batch`). Returns (loss, aux).
 
   The minibatch sums are taken as stacked reductions (mask count with the advantage sum; the surrogate, entropy,
   value-error and KL terms together) rather than one per statistic: on a GPU each sum over a 65,536-row minibatch is
@@ -129,16 +148,10 @@ def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
   v = agent.value.apply({"params": params["value"]}, x)[..., 0]
   mask = batch["mask"]
   adv = batch["adv"]
-
-  def sums(*terms):   # [k] sums over the minibatch of k same-shaped terms, one reduction
-    return jnp.sum(jnp.stack([t.reshape(-1) for t in terms]), axis=1)
-
-  count, s_adv = sums(mask, adv * mask)   # s_adv is dead code (dropped) without advantage normalisation
-  n = jnp.maximum(count, 1.0)
+  norms = norms or minibatch_norms(p, batch)
+  n = norms["n"]
   if p.normalize_advantage:
-    mu = s_adv / n
-    sd = jnp.sqrt(jnp.sum(mask * (adv - mu) ** 2) / n) + 1e-8   # a second pass: exact however far mu is from 0
-    adv = (adv - mu) / sd
+    adv = (adv - norms["mu"]) / norms["sd"]
   ratio = jnp.exp(logp - batch["logp"])
   surr = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp["clip_eps"], 1.0 + hp["clip_eps"]) * adv)
   v_err = (v - batch["target"]) ** 2
@@ -146,9 +159,9 @@ def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
     v_clip = batch["value"] + jnp.clip(v - batch["value"], -p.value_clip_eps, p.value_clip_eps)
     v_err = jnp.maximum(v_err, (v_clip - batch["target"]) ** 2)
   kl = jax.lax.stop_gradient((ratio - 1.0) - (logp - batch["logp"]))   # a diagnostic, not differentiated
-  s_surr, s_ent, s_verr, s_kl = sums(surr * mask, ent * mask, v_err, kl * mask)
+  s_surr, s_ent, s_verr, s_kl = _sums(surr * mask, ent * mask, v_err, kl * mask)
   pg_loss = -s_surr / n
-  v_loss = 0.5 * s_verr / v_err.size
+  v_loss = 0.5 * s_verr / norms["size"]
   entropy = s_ent / n
   loss = pg_loss + hp["vf_coef"] * v_loss - hp["ent_coef"] * entropy
   return loss, {"pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": s_kl / n}
@@ -157,14 +170,24 @@ def ppo_loss(agent: Agent, params, normalizer, batch, hp=None):
 _LOSS_STATS = ("pg_loss", "v_loss", "entropy", "approx_kl")   # ppo_loss's aux, in this order
 
 
-def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constrain=None):
+def chunks_per_minibatch(ppo: PPOConfig, rows_per_group: int, groups_per_device: int) -> int:
+  """Chunks each minibatch's gradient is taken in: the fewest that divide a group's `rows_per_group` minibatch rows
+  and leave at most ppo.max_rows_per_pass rows per device in one pass (groups_per_device groups, or vmapped sweep
+  members' groups, share a device)."""
+  need = -(-rows_per_group * groups_per_device // ppo.max_rows_per_pass)
+  return next(c for c in range(max(1, need), rows_per_group + 1) if rows_per_group % c == 0)
+
+
+def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constrain=None, chunks: int = 1):
   """Normaliser update on the batch's observations, then epochs x minibatches of Adam on the PPO loss.
 
   batch: dict of [T, B, ...] arrays (see ppo_loss). groups: G env groups (B = G x B/G, the groups axis is the one
   sharded over devices, ppo/distributed.py): each epoch shuffles inside each group and every minibatch takes the
   same number of samples from each group, so the shuffle never crosses devices; G = 1 is a plain global shuffle.
-  constrain: optional fn applied to [G, ...] arrays (a sharding constraint). A non-finite gradient step is skipped
-  (params unchanged) and counted in aux['nan_skips'], so NaNs never reach the parameters.
+  constrain: optional fn applied to [G, ...] arrays (a sharding constraint). chunks: each minibatch's gradient is
+  the sum of this many chunks' (chunks_per_minibatch; each chunk takes the same rows of every group), so the
+  networks' activations are those of one chunk. A non-finite gradient step is skipped (params unchanged) and counted
+  in aux['nan_skips'], so NaNs never reach the parameters.
   """
   p = agent.ppo
   constrain = constrain or (lambda t: t)
@@ -180,12 +203,32 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   # clipping norm, Adam, the finiteness check and the skip-select are a handful of kernels per step instead of a few
   # per parameter array (BENCHMARKS.md, session 18).
   theta0, unravel = ravel_pytree(state.params)
-  loss_of_flat = lambda theta, mb: ppo_loss(agent, unravel(theta), normalizer, mb, hp)  # noqa: E731
+  loss_of_flat = lambda theta, mb, norms=None: ppo_loss(agent, unravel(theta), normalizer, mb, hp, norms)  # noqa: E731
   grad_fn = jax.value_and_grad(loss_of_flat, has_aux=True)
+  if (n // p.num_minibatches) % chunks:
+    raise ValueError(f"chunks ({chunks}) must divide a group's minibatch rows ({n // p.num_minibatches})")
 
-  def minibatch(carry, mb):
+  def minibatch_grad(theta, mb):
+    """((loss, aux), gradient) of one minibatch [G, n / M, ...], summed over its chunks."""
+    if chunks == 1:
+      return grad_fn(theta, mb)
+    norms = minibatch_norms(p, mb)
+    # [G, n / M, ...] -> [C, G, n / (M C), ...]
+    parts = jax.tree.map(lambda a: jnp.swapaxes(a.reshape((a.shape[0], chunks, -1) + a.shape[2:]), 0, 1), mb)
+
+    def chunk(total, part):
+      out = grad_fn(theta, constrain(part), norms)
+      return jax.tree.map(jnp.add, total, out), None
+
+    zero = jax.tree.map(jnp.zeros_like, jax.eval_shape(grad_fn, theta, mb))
+    return jax.lax.scan(chunk, zero, parts)[0]
+
+  def minibatch(carry, idx):
     theta, opt_state, skips, totals = carry
-    (loss, aux), g = grad_fn(theta, constrain(mb))
+    # minibatch m: rows idx [G, n / M] of every group, gathered here so that only one minibatch of the shuffled
+    # batch is ever materialised (a whole shuffled copy was ~10 KB per env in phase 2, BENCHMARKS.md session 32)
+    mb = jax.tree.map(lambda a: jax.vmap(lambda x, i: x[i])(a, idx), flat)
+    (loss, aux), g = minibatch_grad(theta, constrain(mb))
     upd, new_opt = agent.optimizer.update(g, opt_state, theta)
     ok = jnp.isfinite(loss) & jnp.all(jnp.isfinite(g))
     theta = jnp.where(ok, theta + upd, theta)
@@ -197,10 +240,8 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   def epoch(carry, k):
     keys = jax.random.split(k, groups) if groups > 1 else k[None]
     perm = constrain(jax.vmap(lambda kg: jax.random.permutation(kg, n))(keys))     # [G, n]
-    # [G, n, ...] -> [M, G, n / M, ...]: minibatch m takes the same slice of every group's permutation
-    mbs = jax.tree.map(lambda a: jnp.swapaxes(jax.vmap(lambda x, i: x[i])(a, perm).reshape(
-        (groups, p.num_minibatches, -1) + a.shape[2:]), 0, 1), flat)
-    return jax.lax.scan(minibatch, carry, mbs)
+    # [G, n] -> [M, G, n / M]: minibatch m takes the same slice of every group's permutation
+    return jax.lax.scan(minibatch, carry, jnp.swapaxes(perm.reshape(groups, p.num_minibatches, -1), 0, 1))
 
   init = (theta0, state.opt_state, jnp.zeros((), jnp.int32), jnp.zeros(1 + len(_LOSS_STATS), jnp.float32))
   (theta, opt_state, skips, totals), _ = jax.lax.scan(epoch, init, jax.random.split(key, p.update_epochs))
