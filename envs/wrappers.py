@@ -35,11 +35,19 @@ class AutoReset(Wrapper):
   `info['final_spec_robustness']` the finished episode's per-spec robustness.
   """
 
-  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None, refresh_in_step: bool = True):
+  def __init__(self, env, pool_size: int | None = None, refresh: int | None = None, refresh_in_step: bool = True,
+               reset_chunk: int = 65_536):
+    """reset_chunk: most envs one vmapped reset generates at once; `reset` makes the envs and the pool in equal
+    chunks of at most this many, one after another (lax.map), so its working memory stops growing with the batch
+    (a drone reset's temporaries are ~84 KB per env: 1,048,576 envs and their pool in one go wanted 82 GiB of a
+    GPU, BENCHMARKS.md session 32)."""
     super().__init__(env)
+    if reset_chunk < 1:
+      raise ValueError(f"reset_chunk must be >= 1, got {reset_chunk}")
     self._pool_size = pool_size
     self._refresh = refresh
     self._refresh_in_step = refresh_in_step
+    self._reset_chunk = reset_chunk
 
   def _sizes(self, batch):
     pool = self._pool_size or max(8, batch // 8)
@@ -51,12 +59,24 @@ class AutoReset(Wrapper):
     k_pool, k_next = jax.random.split(jax.random.fold_in(rng[0], 0x5eed))
     # the envs and the pool in one vmapped reset (each env's state depends on its key only): one copy of the reset
     # program for XLA to compile, not one per batch size
-    both = self.env.reset(jnp.concatenate([rng, jax.random.split(k_pool, pool_n)]))
+    both = self._reset_chunked(jnp.concatenate([rng, jax.random.split(k_pool, pool_n)]))
     state, pool = jax.tree.map(lambda x: x[:batch], both), jax.tree.map(lambda x: x[batch:], both)
     info = dict(state.info, reset_pool=pool, pool_cursor=jnp.zeros((), jnp.int32),
                 pool_refresh=jnp.zeros((), jnp.int32), reset_key=k_next, last_episode=state.info["episode"],
                 final_obs=state.obs, final_spec_robustness=state.info["spec_robustness"])
     return state.replace(info=info)
+
+  def _reset_chunked(self, keys: jax.Array) -> State:
+    """self.env.reset(keys) for keys [N, ...], in ceil(N / reset_chunk) equal chunks (the last padded with repeated
+    keys, their states dropped) when N > reset_chunk; each env's state depends on its key only."""
+    n = keys.shape[0]
+    if n <= self._reset_chunk:
+      return self.env.reset(keys)
+    chunks = -(-n // self._reset_chunk)
+    per = -(-n // chunks)
+    padded = jnp.concatenate([keys, keys[:chunks * per - n]])
+    out = jax.lax.map(self.env.reset, padded.reshape((chunks, per) + keys.shape[1:]))
+    return jax.tree.map(lambda x: x.reshape((chunks * per,) + x.shape[2:])[:n], out)
 
   def step(self, state: State, action: jax.Array) -> State:
     info = state.info
@@ -117,9 +137,9 @@ class AutoReset(Wrapper):
       # so reset the keys in slot order and take the result as the pool. The same states as the scatter below
       # without its one scatter kernel per state leaf (245 of the drone's 672 pool-refresh kernels per phase-1
       # iteration on an H100, BENCHMARKS.md session 28).
-      pool = self.env.reset(keys[(jnp.arange(n) - ref_ptr) % n])
+      pool = self._reset_chunked(keys[(jnp.arange(n) - ref_ptr) % n])
     else:
-      new = self.env.reset(keys)
+      new = self._reset_chunked(keys)
       slots = (ref_ptr + jnp.arange(n)) % pool_n
       pool = jax.tree.map(lambda p, x: p.at[slots].set(x), pool, new)
     return state.replace(info=dict(info, reset_pool=pool, reset_key=key,

@@ -381,3 +381,24 @@ def test_velocity_setpoint_override():
   vel = np.asarray(state.info["sim"]["truth"].vel)
   assert np.all(np.asarray(state.info["sim"]["nav"].phase) == 1)   # cruising, under override
   np.testing.assert_allclose(vel[:, :2], [[3.0, -2.0]] * 2, atol=0.4)
+
+
+def test_autoreset_in_chunks_equals_one_vmapped_reset(drone_env):
+  """reset_chunk cuts the reset of the envs + pool (and the bulk pool refresh) into equal chunks run one after
+  another: 6 envs + 4 pool entries in chunks of 3 (4 chunks of 3, the last padded) give the states one vmapped
+  reset gives."""
+  keys = jax.random.split(jax.random.PRNGKey(11), 6)
+  whole = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False)
+  parts = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False, reset_chunk=3)
+
+  def both(env):
+    s = env.reset(keys)
+    return s, env.refresh_pool(s, 1)
+
+  (s1, r1), (s3, r3) = jax.jit(lambda: (both(whole), both(parts)))()
+  for a, b in zip(jax.tree.leaves((s1, r1.info["reset_pool"])), jax.tree.leaves((s3, r3.info["reset_pool"]))):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+  assert not np.allclose(np.asarray(r1.info["reset_pool"].info["mission"].waypoints),
+                         np.asarray(s1.info["reset_pool"].info["mission"].waypoints))   # the refresh did regenerate
+  with pytest.raises(ValueError, match="reset_chunk"):
+    AutoReset(VmapWrapper(drone_env), reset_chunk=0)
