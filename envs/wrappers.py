@@ -39,8 +39,8 @@ class AutoReset(Wrapper):
                reset_chunk: int = 65_536):
     """reset_chunk: most envs one vmapped reset generates at once; `reset` makes the envs and the pool in equal
     chunks of at most this many, one after another (lax.map), so its working memory stops growing with the batch
-    (a drone reset's temporaries are ~84 KB per env: 1,048,576 envs and their pool in one go wanted 82 GiB of a
-    GPU, BENCHMARKS.md session 32)."""
+    (a drone reset's temporaries are ~84 KB per env: 1,048,576 envs and their pool in one go failed an 82 GiB
+    allocation on an H200 capped at 80 GB, BENCHMARKS.md session 32)."""
     super().__init__(env)
     if reset_chunk < 1:
       raise ValueError(f"reset_chunk must be >= 1, got {reset_chunk}")

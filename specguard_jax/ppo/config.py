@@ -42,7 +42,7 @@ class PPOConfig:
   # Most minibatch rows one device runs through the networks in one forward + backward pass. A larger minibatch is
   # cut into equal chunks whose gradients are summed (the same gradient up to float summation order), so the update's
   # activations stop growing with the env count: 1 << 20 leaves every run up to 262,144 envs per device with the
-  # default unroll and minibatches one pass, and lets 1,048,576 envs fit an 80 GB GPU (BENCHMARKS.md session 32).
+  # default unroll and minibatches one pass; 4 chunks at 1,048,576 envs (BENCHMARKS.md session 32).
   max_rows_per_pass: int = 1 << 20
 
 
