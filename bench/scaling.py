@@ -8,6 +8,7 @@ quality check, a profiler trace and a per-component breakdown of one training it
   XLA_PYTHON_CLIENT_MEM_FRACTION=0.95 python bench/scaling.py --no-throughput --max-envs 524288 --out /tmp/scal
   python bench/scaling.py --quality 20000000 --devices 1 2 --out /tmp/scal   # same steps, 1 vs 2 devices
   python bench/scaling.py --profile --breakdown --envs 65536 --out /tmp/scal
+  python bench/scaling.py --no-throughput --memory-plan --envs 262144 1048576 --out /tmp/scal   # compile only
   python bench/scaling.py --smoke --out /tmp/scal                   # tiny sizes on the CPU (checks it runs)
 
 Throughput = env steps per second of whole training calls (acting + GAE + PPO epochs of SpecGuard; phase 2 also the
@@ -81,6 +82,30 @@ def throughput(a, envs, devices, phase):
   sps = a.calls * cfg.iters_per_call * cfg.steps_per_iter / dt if a.calls else float("nan")
   del carry
   return sps, first, _mem()
+
+
+def memory_plan(a, envs, devices, phase):
+  """XLA's per-device memory plan of a phase's two programs at `envs` envs, compiled but never run (nothing of that
+  size is allocated, so it answers "does N fit" without an out-of-memory trial): init (the first reset of the envs
+  and their pool) and run (one training call). Bytes; peak = the larger of init's temporaries + its output and
+  run's temporaries + its donated carry."""
+  cfg = _cfg(a, envs, devices)
+  ph = iteration.make_phase(cfg, phase, distributed.make_mesh(devices))
+  k = jax.random.PRNGKey(cfg.seed)
+  sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
+  aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
+  sg, aa, k = distributed.replicate((sg, aa, k), ph.mesh)
+  init = ph.init.lower(k, sg, aa).compile()
+  carry = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh),
+                       jax.eval_shape(ph.init, k, sg, aa), init.output_shardings)
+  run = ph.run.lower(carry).compile()
+  mi, mr = init.memory_analysis(), run.memory_analysis()
+  out = {"envs": envs, "devices": devices, "phase": phase,
+         "init_temp": mi.temp_size_in_bytes, "init_output": mi.output_size_in_bytes,
+         "run_temp": mr.temp_size_in_bytes, "run_carry": mr.argument_size_in_bytes,
+         "carry_bytes_global": sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(carry))}
+  out["peak"] = max(out["init_temp"] + out["init_output"], out["run_temp"] + out["run_carry"])
+  return out
 
 
 def _is_oom(e):
@@ -261,6 +286,9 @@ def main(argv=None):
   ap.add_argument("--no-throughput", action="store_true")
   ap.add_argument("--max-envs", type=int, metavar="START", help="double the env count from START until OOM")
   ap.add_argument("--max-envs-limit", type=int, default=1 << 22)
+  ap.add_argument("--memory-plan", action="store_true",
+                  help="compile (not run) init and one training call per --envs x --phases on the largest --devices "
+                       "count and print XLA's per-device memory plan")
   ap.add_argument("--quality", type=int, metavar="STEPS", help="phase-1+2 run of STEPS env steps per device count")
   ap.add_argument("--quality-envs", type=int, default=16384)
   ap.add_argument("--eval-missions", type=int, default=0, help="held-out missions per setting after --quality runs")
@@ -303,6 +331,24 @@ def main(argv=None):
                 f"{mem.get('peak_gb', float('nan')):.1f} |", flush=True)
           save()
           jax.clear_caches()
+  if a.memory_plan:
+    d = max(devices)
+    print(f"\n### Memory plan ({a.vehicle}, {res['device']}, {d} device(s), unroll {a.unroll}, compiled, not run; "
+          f"GiB per device)\n")
+    print("| envs (global) | phase | init temporaries | init output | training call temporaries | carry | peak | "
+          "bytes / env |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|", flush=True)
+    res["memory_plan"] = []
+    for e in a.envs:
+      for p in a.phases:
+        n = e * d if a.per_device else e
+        row = memory_plan(a, n, d, p)
+        res["memory_plan"].append(row)
+        g = lambda b: f"{b / 2**30:.2f}"  # noqa: E731
+        print(f"| {n} | {p} | {g(row['init_temp'])} | {g(row['init_output'])} | {g(row['run_temp'])} | "
+              f"{g(row['run_carry'])} | {g(row['peak'])} | {row['peak'] * d / n:.0f} |", flush=True)
+        save()
+        jax.clear_caches()
   if a.max_envs:
     print(f"\n### Largest env count (phase 2, {max(devices)} device(s))", flush=True)
     res["max_envs"] = max_envs(a, a.max_envs, max(devices), a.max_envs_limit,
