@@ -226,7 +226,8 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   def minibatch(carry, idx):
     theta, opt_state, skips, totals = carry
     # minibatch m: rows idx [G, n / M] of every group, gathered here so that only one minibatch of the shuffled
-    # batch is ever materialised (a whole shuffled copy was ~10 KB per env in phase 2, BENCHMARKS.md session 32)
+    # batch is ever materialised (a whole shuffled copy held the attacker's observations alone at 5.8 KB per env in
+    # phase 2, BENCHMARKS.md session 32)
     mb = jax.tree.map(lambda a: jax.vmap(lambda x, i: x[i])(a, idx), flat)
     (loss, aux), g = minibatch_grad(theta, constrain(mb))
     upd, new_opt = agent.optimizer.update(g, opt_state, theta)
