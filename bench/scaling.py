@@ -46,12 +46,16 @@ def _cfg(a, envs, devices, **kw):
   return c.validate()
 
 
-def _fresh(ph, cfg):
+def _init_args(ph, cfg):
+  """(key, SG state, AA state) replicated over the phase's mesh: the arguments of ph.init."""
   k = jax.random.PRNGKey(cfg.seed)
   sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
   aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
-  sg, aa, k = distributed.replicate((sg, aa, k), ph.mesh)
-  return ph.init(k, sg, aa)
+  return distributed.replicate((k, sg, aa), ph.mesh)
+
+
+def _fresh(ph, cfg):
+  return ph.init(*_init_args(ph, cfg))
 
 
 def _mem():
@@ -91,13 +95,10 @@ def memory_plan(a, envs, devices, phase):
   run's temporaries + its donated carry."""
   cfg = _cfg(a, envs, devices)
   ph = iteration.make_phase(cfg, phase, distributed.make_mesh(devices))
-  k = jax.random.PRNGKey(cfg.seed)
-  sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
-  aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
-  sg, aa, k = distributed.replicate((sg, aa, k), ph.mesh)
-  init = ph.init.lower(k, sg, aa).compile()
+  args = _init_args(ph, cfg)
+  init = ph.init.lower(*args).compile()
   carry = jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh),
-                       jax.eval_shape(ph.init, k, sg, aa), init.output_shardings)
+                       jax.eval_shape(ph.init, *args), init.output_shardings)
   run = ph.run.lower(carry).compile()
   mi, mr = init.memory_analysis(), run.memory_analysis()
   out = {"envs": envs, "devices": devices, "phase": phase,
