@@ -234,9 +234,11 @@ def cov_tick_lanes_xla(spec, resets, P, A, B, H, innov, enable, due):
   return unpack(Y, P.shape[0])
 
 
-def cov_tick_lanes_mgpu(spec, resets, P, A, B, H, innov, enable, due, lanes: int = LANES, stage: str = "full"):
+def cov_tick_lanes_mgpu(spec, resets, P, A, B, H, innov, enable, due, lanes: int = LANES, stage: str = "full",
+                        interpret=None):
   """The per-lane body as one Pallas Mosaic GPU kernel (Hopper): one program per `lanes` vehicles, its input block
-  copied GMEM -> SMEM by TMA, the per-lane body on [lanes] vectors, the output block SMEM -> GMEM."""
+  copied GMEM -> SMEM by TMA, the per-lane body on [lanes] vectors, the output block SMEM -> GMEM.
+  interpret: Mosaic GPU's interpreter parameters (`InterpretGPUParams()`: runs on the CPU, for tests)."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
@@ -260,7 +262,7 @@ def cov_tick_lanes_mgpu(spec, resets, P, A, B, H, innov, enable, due, lanes: int
 
   Y = plgpu.kernel(kernel, out_type=jax.ShapeDtypeStruct((n_out, bp), f32), grid=(bp // lanes,), grid_names=("b",),
                    scratch_types=[plgpu.SMEM((n_in, lanes), f32), plgpu.SMEM((n_out, lanes), f32),
-                                  plgpu.Barrier(num_arrivals=1)])(X)
+                                  plgpu.Barrier(num_arrivals=1)], interpret=interpret)(X)
   return unpack(Y, nb)
 
 
