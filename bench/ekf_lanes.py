@@ -19,7 +19,8 @@ registers, no spills) 161 us, compile 73 s: the per-lane arithmetic costs ~7 us 
 (pack + unpack in XLA, ~130 us) is most of it; `--stage full` did not finish compiling in 285 s. Not used by the env:
 it needs a form that compiles in seconds (loops over P's rows in shared memory instead of straight-line code) and P
 kept in the kernel's layout between ticks. `tests/test_ekf_lanes.py` checks the per-lane body against `ekf._cov_tick`
-on the CPU (plain XLA over lanes) and that the kernel lowers for CUDA.
+on the CPU (plain XLA over lanes), that the kernel lowers for CUDA, and its blocks and offsets in Mosaic GPU's CPU
+interpreter (`interpret=InterpretGPUParams()`; the whole kernel interpreted equals `ekf._cov_tick` too, ~1 min).
 """
 
 from __future__ import annotations
@@ -59,8 +60,11 @@ def layout(spec):
 
 
 def body(load, store, spec, resets, stage: str = "full"):
-  """Per-lane covariance tick. load(k) -> [L] row k of the input; store(k, v) row k of the output.
-  resets: ((cols, rows, how, var), ...) the timeout-reset blocks (ekf._RESETS with their variances)."""
+  """Per-lane covariance tick. load(k) -> [L] row k of the input (rows as `layout` places them); store(k, v) row k of
+  the output: P's triangle (120, order TRI), dx (15), test ratios (13), accepted (13, 1.0 / 0.0).
+  resets: ((cols, rows, how, var), ...) the timeout-reset blocks (ekf._RESETS with their variances).
+  stage: "full" (the tick), or a probe for compile and run time: "predict" (the prediction and its clamps alone,
+  the other outputs zero) or "copy" (output row k = input row k)."""
   n = N_ERR
   _, _, o = layout(spec)
   tri = [load(o["P"] + k) for k in range(120)]
