@@ -126,7 +126,7 @@ def body(load, store, spec, resets, stage: str = "full"):
   if stage == "predict":   # compile-size probe: the prediction alone
     for k, (i, j) in enumerate(TRI):
       store(k, P[i][j])
-    for r in range(41):
+    for r in range(N_ERR + 2 * N_ROWS):
       store(120 + r, load(o["innov"]) * 0.0)
     return
 
@@ -181,12 +181,12 @@ def body(load, store, spec, resets, stage: str = "full"):
   # ---- timeout resets, closing clean-up (ekf._reset_and_condition)
   cleared = [None] * n
   new_var = [0.0] * n
-  for cols, rows, how, var in resets:
+  for b, (cols, rows, how, var) in enumerate(resets):
     fl = [accept[r] for r in rows]
     fused = fl[0]
     for f in fl[1:]:
       fused = (fused & f) if how == "all" else (fused | f)
-    do = (load(o["due"] + resets.index((cols, rows, how, var))) > 0.5) & ~fused
+    do = (load(o["due"] + b) > 0.5) & ~fused
     for c in cols:
       cleared[c] = do
       new_var[c] = jnp.where(do, var, 0.0)
@@ -287,20 +287,19 @@ def main():
                  help="full: every row fresh (the GPS tick); stale: GPS rows left out (the other four ticks)")
   p.add_argument("--no-xla", action="store_true", help="skip the XLA reference's timing")
   a = p.parse_args()
+  if jax.default_backend() != "gpu":
+    sys.exit(f"bench/ekf_lanes.py: the Mosaic GPU kernel needs an NVIDIA Hopper GPU (backend: {jax.default_backend()})")
   sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   from bench.ekf_kernel import timed
-  from tests.test_ekf_kernel import _batch, _check
+  from tests.test_ekf_kernel import DT as dt, _batch, _check, _xla
   cfg = ekf_lib.EKFConfig.drone() if a.vehicle == "drone" else ekf_lib.EKFConfig.rover()
-  noise, gate = ekf_lib._noise_and_gates(cfg)
-  dt = 0.02
   resets = resets_of(cfg)
   print(f"{jax.devices()[0].device_kind}, {a.vehicle}: us per tick (compile s)", flush=True)
   for n in a.envs:
     args = _batch(cfg, n, seed=0)
     for stale in [() if t == "full" else ("gps",) for t in a.ticks]:
       spec = ekf_lib._cov_spec(cfg, dt, stale)
-      xla = jax.vmap(lambda P, A, B, H, innov, en, due: ekf_lib._cov_tick(
-          cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), en, due, stale, unrolled=True))
+      xla = _xla(cfg, stale)   # jit(vmap(ekf._cov_tick)), the reference
       if not a.no_xla:
         t, c = timed(xla, args)
         print(f"  {n:7d} stale={stale!s:9s} XLA (ekf._cov_tick)   {t:9.1f} us  ({c:.1f} s)", flush=True)
@@ -308,7 +307,7 @@ def main():
       t, c = timed(lanes, args)
       print(f"  {n:7d} stale={stale!s:9s} lanes, stage {a.stage:7s} {t:9.1f} us  ({c:.1f} s)", flush=True)
       if a.stage == "full":
-        _check(jax.jit(xla)(*args), jax.jit(lanes)(*args))
+        _check(xla(*args), jax.jit(lanes)(*args))
         print("    equal to ekf._cov_tick (tests/test_ekf_kernel.py's tolerances)", flush=True)
 
 
