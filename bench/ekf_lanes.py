@@ -280,9 +280,11 @@ def main():
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--envs", type=int, nargs="+", default=[65536])
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
-  p.add_argument("--stage", default="full", choices=("copy", "predict", "full"),
-                 help="copy: pack + a kernel copying its block + unpack (the layout's floor); predict: the prediction "
-                      "alone; full: the whole tick (checked against ekf._cov_tick)")
+  p.add_argument("--stage", default="full", choices=("copy", "predict", "full", "loop", "loop-layout"),
+                 help="straight-line kernel: copy: pack + a kernel copying its block + unpack (the layout's floor); "
+                      "predict: the prediction alone; full: the whole tick (checked against ekf._cov_tick). "
+                      "loop: the library's looped kernel specguard_jax/ekf_lanes.py (checked too); loop-layout: its "
+                      "XLA transposes in and out alone, no kernel")
   p.add_argument("--ticks", nargs="+", default=["stale"], choices=("full", "stale"),
                  help="full: every row fresh (the GPS tick); stale: GPS rows left out (the other four ticks)")
   p.add_argument("--no-xla", action="store_true", help="skip the XLA reference's timing")
@@ -292,6 +294,7 @@ def main():
   sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
   from bench.ekf_kernel import timed
   from tests.test_ekf_kernel import DT as dt, _batch, _check, _xla
+  from specguard_jax import ekf_lanes
   cfg = ekf_lib.EKFConfig.drone() if a.vehicle == "drone" else ekf_lib.EKFConfig.rover()
   resets = resets_of(cfg)
   print(f"{jax.devices()[0].device_kind}, {a.vehicle}: us per tick (compile s)", flush=True)
@@ -303,10 +306,16 @@ def main():
       if not a.no_xla:
         t, c = timed(xla, args)
         print(f"  {n:7d} stale={stale!s:9s} XLA (ekf._cov_tick)   {t:9.1f} us  ({c:.1f} s)", flush=True)
-      lanes = lambda *x: cov_tick_lanes_mgpu(spec, resets, *x, stage=a.stage)
+      if a.stage == "loop":
+        lanes = lambda *x: ekf_lanes.cov_tick(spec, resets, *x)
+      elif a.stage == "loop-layout":
+        lanes = lambda *x: ekf_lanes.unpack(*(lambda Pt, aux: (Pt, aux[:ekf_lanes.Layout(spec).n_out]))(
+          *ekf_lanes.pack(spec, *x)), x[0].shape[0])
+      else:
+        lanes = lambda *x: cov_tick_lanes_mgpu(spec, resets, *x, stage=a.stage)
       t, c = timed(lanes, args)
-      print(f"  {n:7d} stale={stale!s:9s} lanes, stage {a.stage:7s} {t:9.1f} us  ({c:.1f} s)", flush=True)
-      if a.stage == "full":
+      print(f"  {n:7d} stale={stale!s:9s} lanes, stage {a.stage:11s} {t:9.1f} us  ({c:.1f} s)", flush=True)
+      if a.stage in ("full", "loop"):
         _check(xla(*args), jax.jit(lanes)(*args))
         print("    equal to ekf._cov_tick (tests/test_ekf_kernel.py's tolerances)", flush=True)
 
