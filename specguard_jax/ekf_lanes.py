@@ -44,6 +44,21 @@ def _finite(x):
   return jnp.abs(x) < jnp.inf
 
 
+def _where(pred, a, b):
+  """jnp.where whose predicate may be a traced scalar (a loop index test): broadcast to the vectors' shape first
+  (Mosaic GPU's warpgroup lowering of select does no implicit broadcast)."""
+  shape = jnp.broadcast_shapes(jnp.shape(a), jnp.shape(b))
+  if jnp.shape(pred) == shape:
+    return jnp.where(pred, a, b)
+  # as a float: Mosaic GPU cannot broadcast (convert) a scalar bool to a vector of them
+  return jnp.where(jnp.broadcast_to(jnp.where(pred, 1.0, 0.0), shape) > 0.5, a, b)
+
+
+def _not(b):
+  """Logical not of a bool vector (Mosaic GPU's warpgroup lowering of lax.not_p on bools fails: i1 registers)."""
+  return jnp.where(b, 0.0, 1.0) > 0.5
+
+
 def _select(i, values, dtype):
   """values[i] for a traced scalar index i and a static table (a chain of scalar selects)."""
   out = jnp.asarray(values[0], dtype)
@@ -149,9 +164,9 @@ def tick_body(spec, resets, p, aux, out, work, fori=jax.lax.fori_loop):
       a, b = p[n * i + j], p[n * j + i]
       v = 0.5 * (a + b)
       v = jnp.where(_finite(v), v, 0.0) * (s_i * s_all[j])
-      v = jnp.where(i == j, v + lift_i, v)
-      p[n * i + j] = jnp.where(j >= i, v, a)
-      p[n * j + i] = jnp.where(j >= i, v, b)
+      v = _where(i == j, v + lift_i, v)
+      p[n * i + j] = _where(j >= i, v, a)
+      p[n * j + i] = _where(j >= i, v, b)
     return None
 
   fori(0, n, symmetrise_row, None)
@@ -160,7 +175,7 @@ def tick_body(spec, resets, p, aux, out, work, fori=jax.lax.fori_loop):
   def h_row(i):
     """Row i of H over columns 0..8 ([9] vectors; exact zeros off its support)."""
     off, lo, hi = (_select(i, t, jnp.int32) for t in (lay.h_off, lay.h_lo, lay.h_hi))
-    return [jnp.where((c >= lo) & (c < hi), aux[off + c - lo], 0.0) for c in range(N_HCOLS)]
+    return [_where((c >= lo) & (c < hi), aux[off + c - lo], 0.0) for c in range(N_HCOLS)]
 
   def hdot(h, v):
     """h . v over columns 0..8, ascending (the order of the reference's sparse sums)."""
@@ -188,11 +203,11 @@ def tick_body(spec, resets, p, aux, out, work, fori=jax.lax.fori_loop):
 
   fori(0, N_ROWS, gate_row, None)
   enable = [aux[lay.en + i] > 0.5 for i in range(N_ROWS)]
-  bad = [enable[i] & ~(out[lay.ratio + i] <= 1.0) for i in range(N_ROWS)]
+  bad = [enable[i] & _not(out[lay.ratio + i] <= 1.0) for i in range(N_ROWS)]
   group_bad = {}
   for i, g in enumerate(spec.group_of_row):
     group_bad[g] = bad[i] if g not in group_bad else group_bad[g] | bad[i]
-  accept = [enable[i] & ~group_bad[spec.group_of_row[i]] for i in range(N_ROWS)]
+  accept = [enable[i] & _not(group_bad[spec.group_of_row[i]]) for i in range(N_ROWS)]
   for i in range(N_ROWS):
     out[lay.acc + i] = jnp.where(accept[i], 1.0, 0.0)
   for r in range(n):
@@ -229,7 +244,7 @@ def tick_body(spec, resets, p, aux, out, work, fori=jax.lax.fori_loop):
     fused = accept[rows[0]]
     for r in rows[1:]:
       fused = (fused & accept[r]) if how == "all" else (fused | accept[r])
-    do = (aux[lay.due + b] > 0.5) & ~fused
+    do = (aux[lay.due + b] > 0.5) & _not(fused)
     for c in cols:
       work[lay.clr + c] = jnp.where(do, 1.0, 0.0)
       work[lay.nv + c] = jnp.where(do, var, 0.0)
@@ -249,9 +264,9 @@ def tick_body(spec, resets, p, aux, out, work, fori=jax.lax.fori_loop):
       v = p[n * i + j]
       m = cl_i if clr[j] is None else cl_i | clr[j]
       v = jnp.where(m, 0.0, v)
-      v = jnp.where(i == j, v + nv_i, v)
+      v = _where(i == j, v + nv_i, v)
       v = jnp.where(_finite(v), v, 0.0) * (s_i * s_all[j])
-      p[n * i + j] = jnp.where(i == j, v + lift_i, v)
+      p[n * i + j] = _where(i == j, v + lift_i, v)
     return None
 
   fori(0, n, clean_row, None)
@@ -349,6 +364,9 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, interpret=None):
     scratch_types=[plgpu.SMEM((N_ERR * N_ERR, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32),
                    plgpu.SMEM((lay.n_out, LANES), f32), plgpu.SMEM((lay.n_work, LANES), f32),
                    plgpu.Barrier(num_arrivals=1, num_barriers=2)],
+    # Lane semantics (jax 0.10's default; 0.11 defaults to Warpgroup, whose layout inference took > 10 min on this
+    # kernel on the host CPU, where Lane lowers it in about a second)
+    compiler_params=None if interpret else plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane),
     interpret=interpret)(Pt, aux)
   return unpack(Po, out, nb)
 
