@@ -82,7 +82,8 @@ def main():
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
   p.add_argument("--unroll", type=int, default=32)
-  p.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as the fused GPU kernel")
+  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   p.add_argument("--phase2", action="store_true",
                  help="the phase-2 env (reactive control, residual detector, reconstruction and its shadow EKF)")
   p.add_argument("--shadow-xla", action="store_true",
@@ -115,7 +116,7 @@ def main():
     if env_nf is not None:
       env_nf._fused_shadow = False
   env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)) if a.ab_tick_cond else None
-  label = f"phase {2 if a.phase2 else 1}, EKF {'kernel' if a.fused_ekf else 'XLA'}" + (
+  label = f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (
       ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)

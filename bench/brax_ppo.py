@@ -223,7 +223,8 @@ def main(argv=None):
   p.add_argument("--no-evals", action="store_true", help="no evals (final_reward NaN)")
   p.add_argument("--hidden", type=int, nargs="+", default=[256, 256, 256, 256])
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--fused-ekf", action="store_true", help="the env's EKF covariance work as the fused GPU kernel")
+  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   p.add_argument("--verbose", action="store_true", help="one line per epoch on stderr")
   p.add_argument("--json", default=None)
   a = p.parse_args(argv)

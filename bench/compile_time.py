@@ -25,7 +25,8 @@ def main():
   p.add_argument("--vehicles", nargs="+", default=["drone", "rover"])
   p.add_argument("--trainer-parts", action="store_true", help="compile times of a training phase and its parts")
   p.add_argument("--phase", type=int, default=1, choices=(1, 2))
-  p.add_argument("--fused-ekf", action="store_true")
+  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   a = p.parse_args()
   if a.trainer_parts:
     for v in a.vehicles:

@@ -98,7 +98,8 @@ def main():
   p.add_argument("--no-autoreset", action="store_true", help="time the bare vmapped env (episodes may end)")
   p.add_argument("--trainer-env", action="store_true",
                  help="no NaN fallback, the reset pool refreshed once per --steps rollout (as ppo/iteration.py)")
-  p.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel")
+  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   args = p.parse_args()
   dev = jax.devices()[0]
   print(f"device: {dev.device_kind} ({jax.default_backend()}), jax {jax.__version__}")

@@ -214,7 +214,8 @@ def main(argv=None):
   ap.add_argument("--phase", type=int, default=1, choices=(1, 2))
   ap.add_argument("--unroll", type=int, default=32)
   ap.add_argument("--iters-per-call", type=int, default=1)
-  ap.add_argument("--fused-ekf", action="store_true")
+  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                  help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   ap.add_argument("--matmul-precision", default="default", choices=("default", "bf16"),
                   help="the agents' network matmuls (train.py's flag; training call only)")
   ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),

@@ -280,7 +280,8 @@ def main(argv=None):
   ap.add_argument("--iters-per-call", type=int, default=2)
   ap.add_argument("--calls", type=int, default=3, help="timed calls per measurement (after the compile call)")
   ap.add_argument("--seed", type=int, default=0)
-  ap.add_argument("--fused-ekf", action="store_true", help="the EKF's covariance work as one GPU kernel (train.py's flag)")
+  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
+                  help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
   ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
                   help="the agents' networks' compute dtype in training (train.py's flag; default: its GPU "
                        "default)")

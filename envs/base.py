@@ -80,6 +80,20 @@ class PhysicsState:
     return cls(**{f.name: getattr(data, f.name) for f in dataclasses.fields(cls)})
 
 
+EKF_KERNELS = ("triton", "lanes")   # EnvConfig.fused_ekf's kernels (besides False: XLA)
+
+
+def ekf_kernel_kind(fused_ekf) -> str:
+  """EnvConfig.fused_ekf as the kernel's name: "" (XLA), "triton" (also for True) or "lanes"; a clear error else."""
+  if fused_ekf is None or fused_ekf is False or fused_ekf == "":
+    return ""
+  if fused_ekf is True:
+    return "triton"
+  if fused_ekf in EKF_KERNELS:
+    return fused_ekf
+  raise ValueError(f"fused_ekf must be false, true or one of {', '.join(EKF_KERNELS)}; got {fused_ekf!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Static env configuration (hashable; changing it recompiles).
@@ -125,12 +139,13 @@ class EnvConfig:
   # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
-  # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one fused
-  # Pallas/Triton kernel per tick for the whole batch (specguard_jax/ekf_kernel.py; GPU only; a vmapped env's batch
-  # must be on one device: the trainer shard_maps the step, ppo/iteration.group_step): the same filters to float32
-  # rounding, -9 % phase-1 env step time at 65,536 envs on an H100, but each kernel variant adds ~28 s of Triton
-  # compile to every program (BENCHMARKS.md). P is then kept in the kernel's padded layout (ekf_init(padded=True)).
-  fused_ekf: bool = False
+  # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one GPU kernel per
+  # tick for the whole batch (GPU only; a vmapped env's batch must be on one device: the trainer shard_maps the step,
+  # ppo/iteration.group_step), the same filters to float32 rounding (BENCHMARKS.md): False (XLA); "lanes" the
+  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer: 2.0-3.0x quicker per tick than
+  # XLA at 65,536 envs on an H200, compiles in ~5 s); True or "triton" the Triton tile kernel (ekf_kernel.py, any
+  # NVIDIA GPU: 1.5x, ~28 s of compile per variant; P kept in its padded layout, ekf_init(padded=True)).
+  fused_ekf: bool | str = False
   # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
   # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every
   # finished env's whole state with a fresh one anyway; obs, reward, signals, STL monitor and episode record are
@@ -138,6 +153,7 @@ class EnvConfig:
   nan_fallback: bool = True
 
   def validate(self):
+    ekf_kernel_kind(self.fused_ekf)
     if self.fused_ekf and jax.default_backend() != "gpu":
       raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
     for w in (self.world,) + tuple(self.worlds):
@@ -216,8 +232,8 @@ class RAVEnv(Env):
     gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
     self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
                         and jax.default_backend() != "cpu" else None)
-    self._fused_ekf = config.fused_ekf   # the autopilot EKF's covariance work as one GPU kernel (EnvConfig)
-    self._fused_shadow = config.fused_ekf   # ... and the reconstruction's shadow EKF's (bench/autoreset_cost.py
+    self._fused_ekf = ekf_kernel_kind(config.fused_ekf)   # the autopilot EKF's covariance kernel (EnvConfig)
+    self._fused_shadow = self._fused_ekf    # ... and the reconstruction's shadow EKF's (bench/autoreset_cost.py
                                             # --phase2 turns it off alone to measure its share)
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
@@ -294,7 +310,7 @@ class RAVEnv(Env):
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
     k_sens2, k_run = jax.random.split(k_run)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
-    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=bool(self._fused_ekf))   # the kernel's layout of P
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=self._fused_ekf in (True, "triton", "interpret"))   # the kernel's layout of P
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,

@@ -99,7 +99,8 @@ class TrainConfig:
   eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
-  fused_ekf: bool = False           # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
+  fused_ekf: bool | str = False     # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
+                                    # ("lanes", or "triton" / True)
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
   # The agents' networks in training (acting, values, PPO update): 'default' (f32 matmuls, which XLA runs
@@ -113,6 +114,8 @@ class TrainConfig:
 
   def validate(self):
     from envs import worlds as worlds_lib
+    from envs.base import ekf_kernel_kind
+    ekf_kernel_kind(self.fused_ekf)
     if self.fused_ekf and jax.default_backend() != "gpu":
       raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
     if self.vehicle not in VEHICLES:
