@@ -125,8 +125,9 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   if stage == "predict":   # compile-size probe: the prediction alone
     for (i, j) in TRI:
       p_store(i, j, P[i][j])
+    zero = load(o.innov) * 0.0
     for r in range(o.n_out):
-      store(r, load(o.innov) * 0.0)
+      store(r, zero)
     return
 
   # ---- gates (ekf._gate) and low-rank sequential fusion (ekf._rows_unrolled)
@@ -218,12 +219,14 @@ def pack(spec, P, A, B, H, innov, enable, due):
   return P.reshape(nb, N_ERR * N_ERR).astype(f32).T, aux.astype(f32).T
 
 
-def unpack(Pt, out, nb):
+def unpack(Pt, out, nb, upper_only: bool = False):
   """The kernel's outputs (P [225, >= B], out [41, >= B]) -> (P [B, 15, 15], dx [B, 15], ratio [B, 13],
-  accept [B, 13] bool)."""
+  accept [B, 13] bool). upper_only: only P's rows i <= j were written (the rest is read from the transpose)."""
   o = out[:, :nb].T
-  return (Pt[:, :nb].T.reshape(nb, N_ERR, N_ERR), o[:, :N_ERR], o[:, N_ERR:N_ERR + N_ROWS],
-          o[:, N_ERR + N_ROWS:] > 0.5)
+  P = Pt[:, :nb].T.reshape(nb, N_ERR, N_ERR)
+  if upper_only:
+    P = jnp.where(np.triu(np.ones((N_ERR, N_ERR), bool)), P, jnp.swapaxes(P, 1, 2))
+  return P, o[:, :N_ERR], o[:, N_ERR:N_ERR + N_ROWS], o[:, N_ERR + N_ROWS:] > 0.5
 
 
 def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
@@ -241,14 +244,17 @@ def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "ful
   return unpack(Po, jnp.stack([out[k] for k in range(len(out))]), nb)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "resets", "stage", "interpret"))
-def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", interpret=None):
+@functools.partial(jax.jit, static_argnames=("spec", "resets", "stage", "interpret", "triangle"))
+def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", interpret=None,
+             triangle: bool = True):
   """The tick's covariance work for a batch of B vehicles as one Mosaic GPU kernel (NVIDIA Hopper or newer).
 
   P: [B, 15, 15] symmetric covariance before the prediction. A, B: [B, 3, 3] F's blocks (`ekf._predict_nominal`).
   H: [B, 13, 15] observation Jacobian (its entries on `spec.h_entries()` are read). innov: [B, 13]. enable: [B, 13]
   bool. due: [B, 3] bool, the timeout resets due (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`.
   Returns (P [B, 15, 15], dx [B, 15], ratio [B, 13], accept [B, 13] bool). stage: see `tick_body`.
+  triangle: shared memory holds P's upper triangle only (120 rows, copied in and out as 15 row ranges; XLA mirrors
+  it on the way out) and the outputs overwrite aux in place: 104 KB per program instead of 180, two programs per SM.
   interpret: Mosaic GPU's interpreter parameters (`InterpretGPUParams()`: runs on the CPU, for tests)."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
@@ -257,36 +263,45 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", 
   lay = Layout(spec)
   Pt, aux = (jnp.pad(x, ((0, 0), (0, bp - nb))) for x in pack(spec, P, A, B, H, innov, enable, due))
   f32 = jnp.float32
+  # P's rows in shared memory: all 225, or the upper triangle's 120 (row i's entries j >= i as one range)
+  ranges = [(N_ERR * i + i, TRI_INDEX[(i, i)], N_ERR - i) for i in range(N_ERR)] if triangle else [(0, 0, 225)]
+  p_row = (lambda i, j: TRI_INDEX[(min(i, j), max(i, j))]) if triangle else (lambda i, j: N_ERR * i + j)
 
-  def kernel(p_gmem, aux_gmem, po_gmem, out_gmem, p_smem, aux_smem, out_smem, bars):
+  def kernel(p_gmem, aux_gmem, po_gmem, out_gmem, p_smem, aux_smem, *scratch):
+    *out_smem, p_bar, aux_bar = scratch
+    out_smem = out_smem[0] if out_smem else aux_smem
     blk = pl.ds(jax.lax.axis_index("b") * LANES, LANES)
-    plgpu.copy_gmem_to_smem(p_gmem.at[:, blk], p_smem, bars.at[0])
-    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, bars.at[1])
-    plgpu.barrier_wait(bars.at[0])
-    plgpu.barrier_wait(bars.at[1])
+    for g, s_, n in ranges:
+      plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(g, n), blk], p_smem.at[pl.ds(s_, n)], p_bar)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
+    plgpu.barrier_wait(p_bar)
+    plgpu.barrier_wait(aux_bar)
 
     def p_store(i, j, v):
-      p_smem[N_ERR * i + j] = v
-      if i != j:
-        p_smem[N_ERR * j + i] = v
+      p_smem[p_row(i, j)] = v
+      if i != j and not triangle:
+        p_smem[p_row(j, i)] = v
 
     def store(k, v):
       out_smem[k] = v
 
-    tick_body(spec, resets, lambda i, j: p_smem[N_ERR * i + j], p_store, lambda k: aux_smem[k], store, stage)
+    tick_body(spec, resets, lambda i, j: p_smem[p_row(i, j)], p_store, lambda k: aux_smem[k], store, stage)
     plgpu.commit_smem()
-    plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[:, blk])
-    plgpu.copy_smem_to_gmem(out_smem, out_gmem.at[:, blk])
+    for g, s_, n in ranges:
+      plgpu.copy_smem_to_gmem(p_smem.at[pl.ds(s_, n)], po_gmem.at[pl.ds(g, n), blk])
+    plgpu.copy_smem_to_gmem(out_smem.at[pl.ds(0, lay.n_out)], out_gmem.at[:, blk])
     plgpu.wait_smem_to_gmem(0)
 
+  # triangle: the outputs overwrite aux in place (every load of tick_body precedes its first store)
+  out_scratch = [] if triangle else [plgpu.SMEM((lay.n_out, LANES), f32)]
   Po, out = plgpu.kernel(
     kernel, out_type=(jax.ShapeDtypeStruct((N_ERR * N_ERR, bp), f32), jax.ShapeDtypeStruct((lay.n_out, bp), f32)),
     grid=(bp // LANES,), grid_names=("b",),
-    scratch_types=[plgpu.SMEM((N_ERR * N_ERR, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32),
-                   plgpu.SMEM((lay.n_out, LANES), f32), plgpu.Barrier(num_arrivals=1, num_barriers=2)],
+    scratch_types=[plgpu.SMEM((120 if triangle else 225, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32)]
+    + out_scratch + [plgpu.Barrier(num_arrivals=len(ranges)), plgpu.Barrier(num_arrivals=1)],
     compiler_params=None if interpret else plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane),
     interpret=interpret)(Pt, aux)
-  return unpack(Po, out, nb)
+  return unpack(Po, out, nb, upper_only=triangle)
 
 
 def resets_of(cfg):
