@@ -6,16 +6,21 @@ low-rank form, the timeout resets and the closing clean-up. It returns what `_co
 [B, 15], test ratio [B, 13], accept [B, 13] bool), equal to float32 rounding (`tests/test_ekf_lanes.py`).
 
 Layout: vehicle-minor. One program owns 128 vehicles, one per thread of a warpgroup; every per-vehicle quantity is a
-row of a [rows, 128] block in shared memory (P as its 225 entries, row 15 i + j), so in the kernel each is a [128]
-vector and the tick is straight-line per-lane code with P's symmetry and F's / H's sparsity resolved statically: no
-shuffles, no masked reductions, no [B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per
-tick and the Triton tile kernel `ekf_kernel.py` pay for). P lives in registers during the tick (~170 per thread).
-XLA transposes the inputs into that layout and the outputs back (plain transposes, no gathers).
+row of a [rows, 128] block in shared memory, so in the kernel each is a [128] vector and the tick is straight-line
+per-lane code with P's symmetry and F's / H's sparsity resolved statically: no shuffles, no masked reductions, no
+[B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per tick and the Triton tile kernel
+`ekf_kernel.py` pay for). P lives in registers during the tick. XLA transposes the inputs into that layout ([225, B]
+for P, row 15 i + j) and the outputs back (plain transposes, no gathers); shared memory holds P's upper triangle
+(120 rows, copied in and out as 15 row ranges, XLA mirroring it on the way out) and the outputs overwrite the inputs'
+block: 104 KB per program, two programs per SM (all 225 rows and a separate output block: 180 KB, one; 15-18 % slower).
 
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
 and Triton did not compile this straight-line form in 9 minutes (session 11); jax 0.11's default Warpgroup semantics
 did not in 285 s (its layout inference grows faster than linearly with the kernel's length, session 34), where Lane
-semantics compiles the whole tick in 3-5 s (BENCHMARKS.md, session 35).
+semantics compiles the whole tick in 3-8 s. Measured (BENCHMARKS.md session 35, H200, 65,536 vehicles, us per tick,
+every row fresh / GPS rows stale): drone 216.5 / 131.9 against XLA's 677.9 / 488.1 and the Triton kernel's 453.7 /
+344.7. A form that loops over P in shared memory (to keep the kernel short) compiled as fast but ran slower than XLA
+(latency-bound on shared memory), so the tick stays straight-line code with P in registers (~170 per thread).
 """
 
 from __future__ import annotations
