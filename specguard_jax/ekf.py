@@ -593,9 +593,9 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
   return tick(P, A, B, H, innov, enable, due)
 
 
-def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple, interpret=None):
+def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple):
   """`_cov_tick` for one vehicle whose vmap runs `ekf_lanes.cov_tick` (one Mosaic GPU kernel for the whole batch,
-  one vehicle per lane; P [15, 15] unpadded). interpret: Mosaic GPU interpreter parameters (tests, on the CPU)."""
+  one vehicle per lane; P [15, 15] unpadded)."""
   from specguard_jax import ekf_lanes
   spec = _cov_spec(cfg, dt, stale)
   noise, gate = _noise_and_gates(cfg)
@@ -608,7 +608,7 @@ def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
   @tick.def_vmap
   def _(axis_size, in_batched, *args):
     args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
-    out = ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args, interpret=interpret)
+    out = ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args)
     return out, (True, True, True, True)
 
   return tick(P, A, B, H, innov, enable, due)
@@ -672,8 +672,8 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
   fused: under vmap, run the covariance work as one GPU kernel for the batch (dt must be a Python float; GPU only):
   True or "triton" the Triton tile kernel (`ekf_kernel`, P padded to [16, 16]); "lanes" the per-lane Mosaic GPU
-  kernel (`ekf_lanes`, NVIDIA Hopper or newer, P [15, 15]). "interpret" / "lanes-interpret": the same kernel through
-  its interpreter (tests, on the CPU). The same filter every way (to float32 rounding).
+  kernel (`ekf_lanes`, NVIDIA Hopper or newer, P [15, 15]). "interpret": the Triton kernel through Pallas'
+  interpreter (tests, on the CPU). The same filter every way (to float32 rounding).
   """
   s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
@@ -690,12 +690,8 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
   ages = jnp.stack([state.gps_pos_age, state.gps_vel_age, state.hgt_age]) + dt
   due = jnp.stack([gps, gps, baro]) & (ages > cfg.reset_timeout)
-  if fused in ("lanes", "lanes-interpret"):
-    interpret = None
-    if fused == "lanes-interpret":
-      from jax._src.pallas.mosaic_gpu.interpret.params import InterpretGPUParams
-      interpret = InterpretGPUParams()
-    P, dx, ratio, accept = _cov_tick_lanes(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale), interpret)
+  if fused == "lanes":
+    P, dx, ratio, accept = _cov_tick_lanes(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale))
   elif fused:
     P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale),
                                            interpret=fused == "interpret")

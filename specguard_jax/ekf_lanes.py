@@ -63,8 +63,9 @@ class Layout:
 def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   """The per-lane covariance tick as straight-line code on [lanes] vectors (one vehicle per lane).
 
-  p_load(i, j) -> P[i, j]; p_store(i, j, v) sets P[i, j] and P[j, i] (P is read whole before any store, so P may
-  be updated in place); load(k) -> row k of aux, store(k, v) row k of out (both as `Layout` places them).
+  p_load(i, j) -> P[i, j]; p_store(i, j, v) sets P[i, j] and P[j, i]; load(k) -> row k of aux, store(k, v) row k
+  of out (both as `Layout` places them). Every load comes before the first store, so P and out may overwrite their
+  inputs in place (the kernel's shared memory does).
   resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
   stage: "full" (the tick), or a probe for compile and run time (bench/ekf_lanes.py): "predict" (the prediction and
   its clamps alone, the other outputs zero) or "copy" (P and out copied from P and the first rows of aux)."""
