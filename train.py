@@ -79,8 +79,8 @@ def parse_args(argv=None):
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
   ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=None,
-                  help="the EKF's covariance work as one GPU kernel per tick: lanes (the default kernel: per-lane "
-                       "Mosaic GPU, NVIDIA Hopper or newer) or triton (any NVIDIA GPU; longer compiles)")
+                  help="the EKF's covariance work as one GPU kernel per tick: lanes (what the bare flag picks: "
+                       "per-lane Mosaic GPU, NVIDIA Hopper or newer) or triton (any NVIDIA GPU; longer compiles)")
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")

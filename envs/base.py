@@ -94,6 +94,19 @@ def ekf_kernel_kind(fused_ekf) -> str:
   raise ValueError(f"fused_ekf must be false, true or one of {', '.join(EKF_KERNELS)}; got {fused_ekf!r}")
 
 
+def check_ekf_kernel(fused_ekf) -> str:
+  """`ekf_kernel_kind`, and a clear error where the kernel cannot run: no GPU, or "lanes" (Mosaic GPU: TMA and
+  warpgroups) on an NVIDIA GPU older than Hopper (compute capability 9.0)."""
+  kind = ekf_kernel_kind(fused_ekf)
+  if kind and jax.default_backend() != "gpu":
+    raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
+  cc = getattr(jax.devices()[0], "compute_capability", None) if kind == "lanes" else None
+  if cc is not None and float(cc) < 9.0:
+    raise ValueError(f"fused_ekf='lanes' needs an NVIDIA Hopper GPU or newer (compute capability 9.0); "
+                     f"{jax.devices()[0].device_kind} is {cc}: use fused_ekf='triton' (--fused-ekf triton)")
+  return kind
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Static env configuration (hashable; changing it recompiles).
@@ -154,9 +167,7 @@ class EnvConfig:
   nan_fallback: bool = True
 
   def validate(self):
-    ekf_kernel_kind(self.fused_ekf)
-    if self.fused_ekf and jax.default_backend() != "gpu":
-      raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
+    check_ekf_kernel(self.fused_ekf)
     for w in (self.world,) + tuple(self.worlds):
       if w not in worlds_lib.PRESETS:
         raise ValueError(f"unknown world {w!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
@@ -311,7 +322,8 @@ class RAVEnv(Env):
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
     k_sens2, k_run = jax.random.split(k_run)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
-    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=self._fused_ekf in (True, "triton", "interpret"))   # the kernel's layout of P
+    # the Triton kernel's padded layout of P ("interpret": the same kernel in tests)
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=self._fused_ekf in ("triton", "interpret"))
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,

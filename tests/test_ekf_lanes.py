@@ -111,3 +111,24 @@ def test_fused_ekf_names_a_kernel():
                                                                                        "triton", "lanes"]
   with pytest.raises(ValueError, match="fused_ekf must be false, true or one of triton, lanes; got 'cuda'"):
     ekf_kernel_kind("cuda")
+
+
+def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
+  """A clear one-line error before any compile: no GPU, or a GPU older than Hopper (faked here on the CPU)."""
+  from envs.base import check_ekf_kernel
+  with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
+    check_ekf_kernel("lanes")
+
+  class Ampere:
+    device_kind, compute_capability = "NVIDIA A100-SXM4-80GB", "8.0"
+
+  class Hopper:
+    device_kind, compute_capability = "NVIDIA H200", "9.0"
+
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(jax, "devices", lambda *a: [Ampere()])
+  with pytest.raises(ValueError, match=r"'lanes' needs an NVIDIA Hopper GPU .* is 8.0: use fused_ekf='triton'"):
+    check_ekf_kernel("lanes")
+  assert check_ekf_kernel("triton") == "triton"
+  monkeypatch.setattr(jax, "devices", lambda *a: [Hopper()])
+  assert check_ekf_kernel(True) == "triton" and check_ekf_kernel("lanes") == "lanes"

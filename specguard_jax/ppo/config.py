@@ -114,10 +114,8 @@ class TrainConfig:
 
   def validate(self):
     from envs import worlds as worlds_lib
-    from envs.base import ekf_kernel_kind
-    ekf_kernel_kind(self.fused_ekf)
-    if self.fused_ekf and jax.default_backend() != "gpu":
-      raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
+    from envs.base import check_ekf_kernel
+    check_ekf_kernel(self.fused_ekf)
     if self.vehicle not in VEHICLES:
       raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
     if self.variant not in VARIANTS:
