@@ -46,18 +46,20 @@ def test_kernel_lowers_for_cuda(vehicle):
   assert "mosaic_gpu" in text
 
 
-def test_kernel_blocks_in_mosaic_interpreter():
-  """The kernel's plumbing (transposes, padding to whole blocks, each program's TMA copies at its own offset, P
-  updated in place in shared memory, the outputs' transposes) in Mosaic GPU's interpreter on the CPU, with the copy
-  stage (P and out copied from P and aux): 300 vehicles, 3 programs. The full body's arithmetic is checked above
-  (interpreted it takes minutes per program)."""
+@pytest.mark.parametrize("triangle", [True, False])
+def test_kernel_blocks_in_mosaic_interpreter(triangle):
+  """The kernel's plumbing (transposes, padding to whole blocks, each program's TMA copies at its own offset: P's
+  upper triangle as 15 row ranges mirrored on the way out, or all 225 rows; P and the outputs written in place) in
+  Mosaic GPU's interpreter on the CPU, with the copy stage (P and out copied from P and aux): 300 vehicles, 3
+  programs. The full body's arithmetic is checked above (interpreted it takes minutes per program)."""
   pytest.importorskip("jax.experimental.pallas.mosaic_gpu")
   params = pytest.importorskip("jax._src.pallas.mosaic_gpu.interpret.params")
   cfg = _cfg("drone")
   P, A, B, H, innov, enable, due = _batch(cfg, 300, seed=1)
   spec = ekf_lib._cov_spec(cfg, DT, ("gps",))
   P_out, dx, ratio, _ = ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), P, A, B, H, innov, enable, due,
-                                           stage="copy", interpret=params.InterpretGPUParams())
+                                           stage="copy", interpret=params.InterpretGPUParams(),
+                                           triangle=triangle)
   np.testing.assert_array_equal(np.asarray(P_out), np.asarray(P))
   ab = np.concatenate([np.asarray(A).reshape(300, 9), np.asarray(B).reshape(300, 9)], axis=1)
   np.testing.assert_array_equal(np.asarray(dx), ab[:, :15])
