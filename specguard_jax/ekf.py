@@ -568,10 +568,9 @@ def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
     var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
 
 
-def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple,
-                    interpret: bool = False):
-  """`_cov_tick` for one vehicle whose vmap runs `ekf_kernel.cov_tick` (one fused kernel for the whole batch)."""
-  from specguard_jax import ekf_kernel
+def _cov_tick_batched(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple, batched):
+  """`_cov_tick` for one vehicle whose vmap runs `batched(spec, P, A, B, H, innov, enable, due)` on the whole batch
+  (a GPU kernel; every argument batched, axis 0) and returns (P, dx, ratio, accept) batched. Unbatched: the XLA form."""
   spec = _cov_spec(cfg, dt, stale)
   R = jnp.asarray(spec.R, jnp.float32)
   gate = jnp.asarray(spec.gate, jnp.float32)
@@ -581,37 +580,32 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
     return _cov_tick(cfg, P, A, B, dt, H, innov, R, gate, enable, due, stale, unrolled=True)
 
   @tick.def_vmap
-  def _(axis_size, in_batched, P, A, B, H, innov, enable, due):
-    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
-            for x, b in zip((P, A, B, H, innov, enable, due), in_batched)]
-    P, A, B, H, innov, enable, due = args
-    ab = jnp.concatenate([A.reshape(axis_size, 9), B.reshape(axis_size, 9)], axis=1)
-    P, dx, ratio, accept, diag = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
-    P = jax.vmap(lambda *a: _reset_and_condition(cfg, *a))(P, accept, due, diag)
-    return (P, dx, ratio, accept), (True, True, True, True)
+  def _(axis_size, in_batched, *args):
+    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
+    return batched(spec, *args), (True, True, True, True)
 
   return tick(P, A, B, H, innov, enable, due)
+
+
+def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple,
+                    interpret: bool = False):
+  """`_cov_tick` for one vehicle whose vmap runs `ekf_kernel.cov_tick` (one fused kernel for the whole batch)."""
+  from specguard_jax import ekf_kernel
+
+  def batched(spec, P, A, B, H, innov, enable, due):
+    ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
+    P, dx, ratio, accept, diag = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
+    return jax.vmap(lambda *a: _reset_and_condition(cfg, *a))(P, accept, due, diag), dx, ratio, accept
+
+  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale, batched)
 
 
 def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple):
   """`_cov_tick` for one vehicle whose vmap runs `ekf_lanes.cov_tick` (one Mosaic GPU kernel for the whole batch,
   one vehicle per lane; P [15, 15] unpadded)."""
   from specguard_jax import ekf_lanes
-  spec = _cov_spec(cfg, dt, stale)
-  noise, gate = _noise_and_gates(cfg)
-
-  @jax.custom_batching.custom_vmap
-  def tick(P, A, B, H, innov, enable, due):
-    return _cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), enable, due, stale,
-                     unrolled=True)
-
-  @tick.def_vmap
-  def _(axis_size, in_batched, *args):
-    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
-    out = ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args)
-    return out, (True, True, True, True)
-
-  return tick(P, A, B, H, innov, enable, due)
+  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale,
+                           lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
 
 
 def reset_block(P, idx, var, do):
