@@ -155,8 +155,8 @@ class EnvConfig:
   # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one GPU kernel per
   # tick for the whole batch (GPU only; a vmapped env's batch must be on one device: the trainer shard_maps the step,
   # ppo/iteration.group_step), the same filters to float32 rounding (BENCHMARKS.md): False (XLA); "lanes" the
-  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer: 3.1-3.7x quicker per tick than
-  # XLA, the drone's env step 3.73x -> 2.36x raw MJX at 65,536 envs on an H200, 3-8 s of compile per variant); True or
+  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer: the drone's tick 3.1-3.7x quicker
+  # than XLA, its env step 3.73x -> 2.36x raw MJX at 65,536 envs on an H200, 3-8 s of compile per variant); True or
   # "triton" the Triton tile kernel (ekf_kernel.py, any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P
   # kept in its padded layout, ekf_init(padded=True)).
   fused_ekf: bool | str = False
