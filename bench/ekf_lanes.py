@@ -1,13 +1,14 @@
 """Time the EKF's per-lane covariance kernel (specguard_jax/ekf_lanes.py) against the XLA form and the Triton kernel.
 
   python bench/ekf_lanes.py --envs 65536 [--vehicle drone|rover] [--stage copy|predict|full] [--ticks full stale]
-                            [--layout triangle full] [--no-xla] [--triton]
+                            [--no-xla] [--triton]
 
 Prints us per tick (best of 3 x 20 chained ticks, compile excluded) and the compile time; for the full stage the
 kernel's output is compared with `ekf._cov_tick` (the largest relative deviation of P and dx, and whether the gate
-records are identical). Stages: "full" the tick; "predict" the prediction and its clamps alone; "copy" a kernel that
-copies its blocks (the memory floor of the layout, transposes included). Needs an NVIDIA Hopper GPU.
-Measured: BENCHMARKS.md, sessions 34-35.
+records are identical). The kernel is timed on P packed ([B, 121], as the env keeps it with the kernel), the XLA
+reference and the Triton kernel on P [B, 15, 15]. Stages: "full" the tick; "predict" the prediction and its clamps
+alone; "copy" a kernel that copies its blocks (the memory floor of the layout). Needs an NVIDIA Hopper GPU.
+Measured: BENCHMARKS.md, sessions 34-36.
 """
 
 from __future__ import annotations
@@ -40,9 +41,6 @@ def main():
   p.add_argument("--stage", default="full", choices=("copy", "predict", "full"))
   p.add_argument("--ticks", nargs="+", default=["full", "stale"], choices=("full", "stale"),
                  help="full: every row fresh (the GPS tick); stale: GPS rows left out (the other four ticks)")
-  p.add_argument("--layout", nargs="+", default=["triangle"], choices=("triangle", "full"),
-                 help="P in shared memory: its upper triangle (the default) or all 225 entries (ekf_lanes.cov_tick's "
-                      "triangle flag)")
   p.add_argument("--no-xla", action="store_true", help="skip the XLA reference's timing")
   p.add_argument("--triton", action="store_true", help="time the Triton kernel (ekf_kernel.py, --fused-ekf triton)")
   a = p.parse_args()
@@ -62,14 +60,16 @@ def main():
       rows = [("XLA (ekf._cov_tick)", xla)] if not a.no_xla else []
       if a.triton:
         rows.append(("Triton (ekf_kernel)", _fused(cfg, stale, False)))
-      for layout in a.layout:
-        lanes = functools.partial(ekf_lanes.cov_tick, spec, resets, stage=a.stage, triangle=layout == "triangle")
-        rows.append((f"lanes {layout}, {a.stage}", lanes))
+      rows.append((f"lanes, {a.stage}", functools.partial(ekf_lanes.cov_tick, spec, resets, stage=a.stage)))
+      packed_args = (ekf_lib.pack_p(args[0]),) + tuple(args[1:])   # P as the env keeps it with the lanes kernel
       for name, fn in rows:
-        t, c = timed(fn, args)
+        lanes = name.startswith("lanes")
+        t, c = timed(fn, packed_args if lanes else args)
         print(f"  {n:7d} stale={stale!s:9s} {name:24s} {t:9.1f} us  ({c:.1f} s)", flush=True)
-        if a.stage == "full" and name.startswith("lanes"):
-          dP, ddx, ratio_ok, acc_ok = deviation(xla(*args), jax.jit(fn)(*args))
+        if a.stage == "full" and lanes:
+          out = jax.jit(fn)(*packed_args)
+          out = (ekf_lib.as_square(out[0]),) + tuple(out[1:])
+          dP, ddx, ratio_ok, acc_ok = deviation(xla(*args), out)
           print(f"    vs ekf._cov_tick: P {dP:.1e}, dx {ddx:.1e} (relative, worst vehicle); ratio within 2e-5: "
                 f"{ratio_ok}; accept identical: {acc_ok}", flush=True)
 

@@ -158,7 +158,7 @@ class EnvConfig:
   # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer: the drone's tick 3.1-3.7x quicker
   # than XLA, its env step 3.73x -> 2.36x raw MJX at 65,536 envs on an H200, 3-8 s of compile per variant); True or
   # "triton" the Triton tile kernel (ekf_kernel.py, any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P
-  # kept in its padded layout, ekf_init(padded=True)).
+  # kept in its padded layout, ekf_init(p_layout="padded"); with "lanes" P is kept "packed").
   fused_ekf: bool | str = False
   # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
   # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every
@@ -322,8 +322,9 @@ class RAVEnv(Env):
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
     k_sens2, k_run = jax.random.split(k_run)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
-    # the Triton kernel's padded layout of P ("interpret": the same kernel in tests)
-    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, padded=self._fused_ekf in ("triton", "interpret"))
+    # P in the layout of the EKF's covariance kernel ("interpret": the Triton kernel in tests)
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, p_layout={"triton": "padded", "interpret": "padded",
+                                                              "lanes": "packed"}.get(self._fused_ekf, "square"))
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,

@@ -122,9 +122,11 @@ class EKFConfig:
 class EKFState:
   """Filter state of one vehicle.
 
-  pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: [15, 15] error-state covariance, or
-    [16, 16] with a zero last row and column (`ekf_init(padded=True)`: the fused kernel's layout, kept between ticks
-    so that P enters and leaves the kernel without a copy; every function here accepts either).
+  pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: the error-state covariance in one of
+    `P_LAYOUTS` (`ekf_init(p_layout=...)`): "square" [15, 15]; "padded" [16, 16] with a zero last row and column
+    (the Triton kernel's layout); "packed" [121], its upper triangle in `TRI` order and a zero (the lanes kernel's
+    layout). A kernel's layout is kept between ticks so that P enters and leaves the kernel without a copy; every
+    function here accepts any of them (`as_square`, `p_entry`, `p_diag`).
   gps_pos_age, gps_vel_age, hgt_age: [] s since the last accepted horizontal GPS position / GPS velocity /
     height (GPS height or baro) fusion.
   innov: [11] last innovation (measurement - prediction) per channel (CHANNELS), held between samples.
@@ -183,7 +185,15 @@ def _normalize_quat(q):
 _VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
 _EYE = np.eye(N_ERR, dtype=np.float32)
 _VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
-N_PAD = 16   # size of the padded layout of P (ekf_init(padded=True))
+N_PAD = 16   # size of the padded layout of P (ekf_init(p_layout="padded"))
+TRI = tuple((i, j) for i in range(N_ERR) for j in range(i, N_ERR))       # P's upper triangle, 120 entries
+TRI_INDEX = {ij: k for k, ij in enumerate(TRI)}
+N_PACKED = len(TRI) + 1   # the packed layout: the triangle and a zero (an odd length: ekf_lanes reads it per lane)
+P_LAYOUTS = {"square": N_ERR, "padded": N_PAD, "packed": N_PACKED}     # layout -> P's last dimension
+_TRI_ROW = np.array([i for i, _ in TRI] + [0])          # [121] row / column of each packed entry (the zero: 0, 0)
+_TRI_COL = np.array([j for _, j in TRI] + [0])
+_TRI_DIAG = np.array([i == j for i, j in TRI] + [False])
+_SQUARE_OF_PACKED = np.array([[TRI_INDEX[(min(i, j), max(i, j))] for j in range(N_ERR)] for i in range(N_ERR)])
 
 
 def _clamps(n: int):
@@ -195,15 +205,55 @@ def _clamps(n: int):
   return (np.pad(_VAR_MIN, (0, pad)), np.pad(_VAR_MAX, (0, pad), constant_values=1.0), np.eye(n, dtype=np.float32))
 
 
-def unpadded(P):
-  """P [.., 15, 15] of either layout."""
-  return P[..., :N_ERR, :N_ERR]
+def p_layout(P) -> str:
+  """The layout (`P_LAYOUTS`) of P [..., n, n] or [..., 121], from its last dimension."""
+  for name, n in P_LAYOUTS.items():
+    if P.shape[-1] == n:
+      return name
+  raise ValueError(f"ekf: P of shape {P.shape} is in none of the layouts {P_LAYOUTS}")
+
+
+def pack_p(P15):
+  """P [..., 15, 15] symmetric -> [..., 121] packed: its upper triangle in `TRI` order and a zero."""
+  return jnp.concatenate([P15[..., _TRI_ROW[:-1], _TRI_COL[:-1]], jnp.zeros(P15.shape[:-2] + (1,), P15.dtype)], -1)
+
+
+def as_square(P):
+  """P [..., 15, 15] from any layout."""
+  return P[..., _SQUARE_OF_PACKED] if p_layout(P) == "packed" else P[..., :N_ERR, :N_ERR]
+
+
+def in_layout(P15, layout: str):
+  """P15 [..., 15, 15] in `layout`."""
+  if layout == "packed":
+    return pack_p(P15)
+  pad = P_LAYOUTS[layout] - N_ERR
+  return jnp.pad(P15, [(0, 0)] * (P15.ndim - 2) + [(0, pad), (0, pad)]) if pad else P15
 
 
 def _layout_like(P15, P_ref):
-  """P15 [15, 15] in the layout of P_ref (zero-padded when P_ref is)."""
-  pad = P_ref.shape[-1] - N_ERR
-  return jnp.pad(P15, ((0, pad), (0, pad))) if pad else P15
+  """P15 [15, 15] in the layout of P_ref."""
+  return in_layout(P15, p_layout(P_ref))
+
+
+def p_entry(P, i: int, j: int):
+  """P[i, j] of one vehicle's P in any layout (static indices: a slice)."""
+  return P[TRI_INDEX[(min(i, j), max(i, j))]] if p_layout(P) == "packed" else P[i, j]
+
+
+def p_diag(P):
+  """[..., 15] P's diagonal, any layout."""
+  if p_layout(P) == "packed":
+    return P[..., np.flatnonzero(_TRI_DIAG)]
+  return jnp.diagonal(P, axis1=-2, axis2=-1)[..., :N_ERR] if P.ndim > 2 else _diag(P)[:N_ERR]
+
+
+def add_to_diag(P, d):
+  """P + diag(d), d [15] (one vehicle's P in any layout; elementwise)."""
+  if p_layout(P) == "packed":
+    return P + jnp.where(_TRI_DIAG, jnp.pad(d, (0, 1))[_TRI_ROW], 0.0)
+  n = P.shape[-1]
+  return P + np.eye(n, dtype=np.float32) * jnp.pad(d, (0, n - N_ERR))[None, :]
 
 
 def _diag(P):
@@ -234,12 +284,15 @@ def _condition(P, symmetrise: bool = True, diag=None):
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def ekf_init(cfg: EKFConfig, readings: SensorReadings, padded: bool = False) -> EKFState:
+def ekf_init(cfg: EKFConfig, readings: SensorReadings, p_layout: str = "square") -> EKFState:
   """Initial state from one set of readings: horizontal position and velocity from GPS, height from the barometer,
   roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases.
   Use the readings of the first tick after `init_sensors` (every sensor fresh), with the vehicle at rest or nearly.
-  padded: keep P as [16, 16] with a zero last row and column (the layout of the fused kernel, ekf_step(fused=...)).
+  p_layout: P's layout (`P_LAYOUTS`): "square", or a kernel's (ekf_step(fused=...)): "padded" for the Triton
+  kernel, "packed" for the lanes kernel.
   """
+  if p_layout not in P_LAYOUTS:
+    raise ValueError(f"ekf_init: p_layout {p_layout!r} is not one of {tuple(P_LAYOUTS)}")
   f = readings.accel
   roll = jnp.arctan2(f[1], f[2])
   pitch = jnp.arctan2(-f[0], jnp.sqrt(f[1] ** 2 + f[2] ** 2))
@@ -251,7 +304,7 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings, padded: bool = False) -> 
   z = jnp.zeros((), jnp.float32)
   zc = jnp.zeros((N_CHANNELS,), jnp.float32)
   return EKFState(pos=pos, vel=readings.gps_vel, quat=quat, gyro_bias=jnp.zeros(3), accel_bias=jnp.zeros(3),
-                  P=jnp.diag(jnp.pad(sig ** 2, (0, N_PAD - N_ERR if padded else 0))), gps_pos_age=z, gps_vel_age=z,
+                  P=in_layout(jnp.diag(sig ** 2), p_layout), gps_pos_age=z, gps_vel_age=z,
                   hgt_age=z, innov=zc, test_ratio=zc, accepted=jnp.ones((N_CHANNELS,), jnp.float32), fresh=zc,
                   reset=z, n_resets=z, time=z)
 
@@ -301,7 +354,7 @@ def _predict_cov(cfg: EKFConfig, P, A, B, dt):
 def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
   s, A, B = _predict_nominal(cfg, s, gyro, accel, dt)
-  return s.replace(P=_layout_like(_predict_cov(cfg, unpadded(s.P), A, B, dt), s.P))
+  return s.replace(P=_layout_like(_predict_cov(cfg, as_square(s.P), A, B, dt), s.P))
 
 
 def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
@@ -494,7 +547,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
-  P, dx, ratio, accept = rows(cfg, unpadded(s.P), H, innov, R, gate, enable, stale)
+  P, dx, ratio, accept = rows(cfg, as_square(s.P), H, innov, R, gate, enable, stale)
   return _inject(cfg, s.replace(P=_layout_like(P, s.P)), dx), innov, ratio, accept
 
 
@@ -551,7 +604,7 @@ def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
-  P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, unpadded(P), A, B, dt), H, innov, R, gate, enable, stale)
+  P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, as_square(P), A, B, dt), H, innov, R, gate, enable, stale)
   return _layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
 
 
@@ -602,14 +655,22 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
 
 def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple):
   """`_cov_tick` for one vehicle whose vmap runs `ekf_lanes.cov_tick` (one Mosaic GPU kernel for the whole batch,
-  one vehicle per lane; P [15, 15] unpadded)."""
+  one vehicle per lane). P in any layout, returned in it; the kernel's own, "packed", passes through untouched."""
   from specguard_jax import ekf_lanes
-  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale,
-                           lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
+  Pk = P if p_layout(P) == "packed" else pack_p(as_square(P))
+  Pk, dx, ratio, accept = _cov_tick_batched(
+    cfg, Pk, A, B, dt, H, innov, enable, due, stale,
+    lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
+  return (Pk if p_layout(P) == "packed" else _layout_like(as_square(Pk), P)), dx, ratio, accept
 
 
 def reset_block(P, idx, var, do):
-  """Where `do`: clears rows/columns `idx` of P and sets their variance to var (elementwise: no scatter into P)."""
+  """Where `do`: clears rows/columns `idx` of one vehicle's P (any layout) and sets their variance to var
+  (elementwise: no scatter into P)."""
+  if p_layout(P) == "packed":
+    mask = np.isin(np.arange(N_ERR), idx)
+    hit = mask[_TRI_ROW] | mask[_TRI_COL]
+    return jnp.where(hit & do, 0.0, P) + jnp.where(_TRI_DIAG & hit & do, var, 0.0)
   n = P.shape[-1]
   mask = jnp.zeros(n, bool).at[jnp.asarray(idx)].set(True) & do
   P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
@@ -645,15 +706,15 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
 
 
 def _hph(H, P, n_rows: int):
-  """h_i' P h_i [n_rows] of the first n_rows rows of H [13, 15], P symmetric (either layout), over H's structural
+  """h_i' P h_i [n_rows] of the first n_rows rows of H [13, 15], P symmetric (any layout), over H's structural
   non-zeros only (_H_SUPPORT): sums of scalar products, which XLA fuses (an einsum is a batched-matmul kernel of its
   own under vmap, every tick on a GPU)."""
   out = []
   for i in range(n_rows):
     sup = _H_SUPPORT[i]
     h = [H[i, c] for c in sup]
-    out.append(sum(h[a] * h[a] * P[sup[a], sup[a]] for a in range(len(sup)))
-               + 2.0 * sum(h[a] * h[b] * P[sup[a], sup[b]] for a in range(len(sup)) for b in range(a)))
+    out.append(sum(h[a] * h[a] * p_entry(P, sup[a], sup[a]) for a in range(len(sup)))
+               + 2.0 * sum(h[a] * h[b] * p_entry(P, sup[a], sup[b]) for a in range(len(sup)) for b in range(a)))
   return jnp.stack(out)
 
 
@@ -665,9 +726,9 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   vehicle: their observation rows are left out of the traced fusion (cheaper; the same result as the full tick when
   their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
   fused: under vmap, run the covariance work as one GPU kernel for the batch (dt must be a Python float; GPU only):
-  True or "triton" the Triton tile kernel (`ekf_kernel`, P padded to [16, 16]); "lanes" the per-lane Mosaic GPU
-  kernel (`ekf_lanes`, NVIDIA Hopper or newer, P [15, 15]). "interpret": the Triton kernel through Pallas'
-  interpreter (tests, on the CPU). The same filter every way (to float32 rounding).
+  True or "triton" the Triton tile kernel (`ekf_kernel`, P "padded" [16, 16]); "lanes" the per-lane Mosaic GPU
+  kernel (`ekf_lanes`, NVIDIA Hopper or newer, P best kept "packed"). "interpret": the Triton kernel through Pallas'
+  interpreter (tests, on the CPU). The same filter every way (to float32 rounding), P in any layout.
   """
   s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
@@ -754,4 +815,4 @@ def ekf_body_velocity(state: EKFState):
 
 def ekf_std(state: EKFState):
   """[15] 1-σ of the error state (pos m, vel m/s, attitude rad, gyro bias rad/s, accel bias m/s^2)."""
-  return jnp.sqrt(jnp.maximum(_diag(unpadded(state.P)), 0.0))
+  return jnp.sqrt(jnp.maximum(p_diag(state.P), 0.0))

@@ -11,7 +11,7 @@ Why a kernel: in XLA the vmapped covariance work is ~60 kernels per tick, each r
 [B, 15]-sized buffers (BENCHMARKS.md, session 7), so at 65,536 vehicles the EKF was ~40 % of an env step against
 physics' ~35 %. Here one program owns BLOCK vehicles and keeps each one's P in registers as a [BLOCK, 16, 16] tile
 (Triton needs power-of-two shapes: P is padded with a zero row and column) for the whole tick: P is read once and
-written once. The env keeps P in that padded layout between ticks when the kernel is on (`ekf_init(padded=True)`),
+written once. The env keeps P in that padded layout between ticks when the kernel is on (`ekf_init(p_layout="padded")`),
 and H comes in as its support entries only ([B, 32] instead of a padded [B, 16, 16]): at 65,536 vehicles the pad and
 slice copies around the kernel had cost ~130 us per tick against the kernel's ~270 (bench/gpu_profile.py --ekf).
 The timeout resets and the closing clean-up of P after the fusion stay in XLA (`ekf._reset_and_condition`) as one
@@ -185,7 +185,7 @@ def cov_tick(spec: CovSpec, P, ab, H, innov, enable, interpret: bool = False, nu
   """The tick's covariance work for a batch of B vehicles.
 
   P: [B, 15, 15] covariance before the prediction, or [B, 16, 16] already padded with a zero row and column (the
-  layout `ekf.ekf_init(padded=True)` keeps it in: then P goes into and out of the kernel without a copy).
+  layout `ekf.ekf_init(p_layout="padded")` keeps it in: then P goes into and out of the kernel without a copy).
   ab: [B, 18], F's blocks A (d vel / d att, row-major) then B (-R dt). H: [B, 13, 15] observation Jacobian at the
   predicted state (only its entries on `spec.h_support` are read). innov: [B, 13] innovations. enable: [B, 13] bool,
   rows with a fresh sample. Returns (P in the layout it came in, dx [B, 15], test ratio [B, 13], accept [B, 13]

@@ -2,25 +2,27 @@
 
 What it computes is `ekf._cov_tick` (the XLA form, the reference and the CPU path): the prediction of P, the tick's
 symmetrisation and clamps, the grouped innovation gates, the sequential scalar fusion of the accepted rows in
-low-rank form, the timeout resets and the closing clean-up. It returns what `_cov_tick` returns (P [B, 15, 15], dx
-[B, 15], test ratio [B, 13], accept [B, 13] bool), equal to float32 rounding (`tests/test_ekf_lanes.py`).
+low-rank form, the timeout resets and the closing clean-up. It returns what `_cov_tick` returns (P, dx [B, 15], test
+ratio [B, 13], accept [B, 13] bool), equal to float32 rounding (`tests/test_ekf_lanes.py`).
 
-Layout: vehicle-minor. One program owns 128 vehicles, one per thread of a warpgroup; every per-vehicle quantity is a
-row of a [rows, 128] block in shared memory, so in the kernel each is a [128] vector and the tick is straight-line
-per-lane code with P's symmetry and F's / H's sparsity resolved statically: no shuffles, no masked reductions, no
-[B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per tick and the Triton tile kernel
-`ekf_kernel.py` pay for). P lives in registers during the tick. XLA transposes the inputs into that layout ([225, B]
-for P, row 15 i + j) and the outputs back (plain transposes, no gathers); shared memory holds P's upper triangle
-(120 rows, copied in and out as 15 row ranges, XLA mirroring it on the way out) and the outputs overwrite the inputs'
-block: 104 KB per program, two programs per SM (all 225 rows and a separate output block: 180 KB, one; 15-18 % slower).
+One program owns 128 vehicles, one per thread of a warpgroup, so in the kernel every per-vehicle quantity is a [128]
+vector and the tick is straight-line per-lane code with P's symmetry and F's / H's sparsity resolved statically: no
+shuffles, no masked reductions, no [B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per
+tick and the Triton tile kernel `ekf_kernel.py` pay for). P lives in registers during the tick.
+Memory layout: batch-major as the env holds it, no transposes: P packed ([B, 121]: its upper triangle and a zero,
+`ekf.pack_p`; the env keeps P so with this kernel, `ekf_init(p_layout="packed")`) and the other inputs as one
+[B, stride] block (`pack_aux`); each program copies its 128 vehicles' contiguous rows into shared memory with one
+TMA copy per array and each lane reads its own vehicle's entries at an odd stride (conflict-free), the outputs
+written back in place: 100 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
+vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
 
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
 and Triton did not compile this straight-line form in 9 minutes (session 11); jax 0.11's default Warpgroup semantics
 did not in 285 s (its layout inference grows faster than linearly with the kernel's length, session 34), where Lane
-semantics compiles the whole tick in 3-8 s. Measured (BENCHMARKS.md session 35, H200, 65,536 vehicles, us per tick,
-every row fresh / GPS rows stale): drone 216.5 / 131.9 against XLA's 677.9 / 488.1 and the Triton kernel's 453.7 /
-344.7. A form that loops over P in shared memory (to keep the kernel short) compiled as fast but ran slower than XLA
-(latency-bound on shared memory), so the tick stays straight-line code with P in registers (~170 per thread).
+semantics compiles the whole tick in 3-8 s. Measured (BENCHMARKS.md sessions 35-36, H200, 65,536 vehicles, us per
+tick, every row fresh / GPS rows stale): drone 139.9 / 104.6 against XLA's 677.9 / 488.1 and the Triton kernel's
+453.7 / 344.7. A form that loops over P in shared memory (to keep the kernel short) compiled as fast but ran slower
+than XLA (latency-bound on shared memory), so the tick stays straight-line code with P in registers (~170 / thread).
 """
 
 from __future__ import annotations
@@ -31,11 +33,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-N_ERR = 15
+from specguard_jax.ekf import N_ERR, N_PACKED, TRI, TRI_INDEX, as_square, pack_p, p_layout
+
 N_ROWS = 13
 LANES = 128     # vehicles per program: one per thread of a warpgroup
-TRI = tuple((i, j) for i in range(N_ERR) for j in range(i, N_ERR))       # P's upper triangle, 120 entries
-TRI_INDEX = {ij: k for k, ij in enumerate(TRI)}
 
 
 def _finite(x):
@@ -44,7 +45,7 @@ def _finite(x):
 
 
 class Layout:
-  """Row offsets of the kernel's aux (input) and out (output) blocks, each [rows, lanes] float32.
+  """Offsets of a vehicle's inputs in aux and of its outputs in out (the outputs overwrite the inputs in place).
 
   aux: A [9], B [9] (F's blocks, row-major), H's entries on `spec.h_entries()` [n_h], innov [13], enable [13]
   (1.0 / 0.0), due [3] (1.0 / 0.0, order ekf._RESETS). out: dx [15], test ratio [13], accept [13] (1.0 / 0.0).
@@ -56,6 +57,7 @@ class Layout:
     self.en = self.innov + N_ROWS
     self.due = self.en + N_ROWS
     self.n_aux = self.due + 3
+    self.stride = self.n_aux | 1     # a vehicle's floats in the batch-major aux (odd: conflict-free lane reads)
     self.dx, self.ratio, self.acc = 0, N_ERR, N_ERR + N_ROWS
     self.n_out = N_ERR + 2 * N_ROWS
 
@@ -63,9 +65,9 @@ class Layout:
 def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   """The per-lane covariance tick as straight-line code on [lanes] vectors (one vehicle per lane).
 
-  p_load(i, j) -> P[i, j]; p_store(i, j, v) sets P[i, j] and P[j, i]; load(k) -> row k of aux, store(k, v) row k
-  of out (both as `Layout` places them). Every load comes before the first store, so P and out may overwrite their
-  inputs in place (the kernel's shared memory does).
+  p_load(i, j) -> P[i, j]; p_store(i, j, v) sets P[i, j] and P[j, i] (i <= j); load(k) -> entry k of aux,
+  store(k, v) sets entry k of out (both as `Layout` places them); every value a [lanes] vector. Every load comes
+  before the first store, so P and out may overwrite their inputs in place (the kernel's shared memory does).
   resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
   stage: "full" (the tick), or a probe for compile and run time (bench/ekf_lanes.py): "predict" (the prediction and
   its clamps alone, the other outputs zero) or "copy" (P and out copied from P and the first rows of aux)."""
@@ -216,98 +218,105 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
     store(o.acc + i, jnp.where(accept[i], 1.0, 0.0))
 
 
-def pack(spec, P, A, B, H, innov, enable, due):
-  """Batch-major inputs -> (P [225, B], aux [n_aux, B]): the kernel's vehicle-minor layout."""
-  nb = P.shape[0]
+def pack_aux(spec, A, B, H, innov, enable, due):
+  """The tick's per-vehicle inputs besides P, batch-major: [B, Layout.stride] float32, rows as `Layout` places them
+  (zero-padded to the odd stride)."""
+  nb = A.shape[0]
+  lay = Layout(spec)
   f32 = jnp.float32
   hd = jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1)
-  aux = jnp.concatenate([A.reshape(nb, 9), B.reshape(nb, 9), hd, innov, enable.astype(f32), due.astype(f32)], axis=1)
-  return P.reshape(nb, N_ERR * N_ERR).astype(f32).T, aux.astype(f32).T
+  return jnp.concatenate([A.reshape(nb, 9).astype(f32), B.reshape(nb, 9).astype(f32), hd.astype(f32),
+                          innov.astype(f32), enable.astype(f32), due.astype(f32),
+                          jnp.zeros((nb, lay.stride - lay.n_aux), f32)], axis=1)
 
 
-def unpack(Pt, out, nb, upper_only: bool = False):
-  """The kernel's outputs (P [225, >= B], out [41, >= B]) -> (P [B, 15, 15], dx [B, 15], ratio [B, 13],
-  accept [B, 13] bool). upper_only: only P's rows i <= j were written (the rest is read from the transpose)."""
-  o = out[:, :nb].T
-  P = Pt[:, :nb].T.reshape(nb, N_ERR, N_ERR)
-  if upper_only:
-    P = jnp.where(np.triu(np.ones((N_ERR, N_ERR), bool)), P, jnp.swapaxes(P, 1, 2))
-  return P, o[:, :N_ERR], o[:, N_ERR:N_ERR + N_ROWS], o[:, N_ERR + N_ROWS:] > 0.5
+def _unpack_out(o, spec):
+  """out [B, >= n_out] -> (dx [B, 15], ratio [B, 13], accept [B, 13] bool)."""
+  lay = Layout(spec)
+  return o[:, lay.dx:lay.dx + N_ERR], o[:, lay.ratio:lay.ratio + N_ROWS], o[:, lay.acc:lay.acc + N_ROWS] > 0.5
 
 
+def _packed_io(fn):
+  """fn on P packed [B, 121] -> the same taking and returning P [B, 15, 15] or packed."""
+  @functools.wraps(fn)
+  def wrapped(spec, resets, P, *args, **kw):
+    if p_layout(P) == "packed":
+      return fn(spec, resets, P, *args, **kw)
+    Pk, *rest = fn(spec, resets, pack_p(P), *args, **kw)
+    return (as_square(Pk), *rest)
+  return wrapped
+
+
+@_packed_io
 def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
   """`tick_body` in plain JAX over [B] vectors: the kernel's arithmetic on any backend (tests; eager on the CPU is
-  quicker than compiling its ~10^4 operations)."""
-  nb = P.shape[0]
-  Pt, aux = pack(spec, P, A, B, H, innov, enable, due)
-  p_out, out = {}, {}
+  quicker than compiling its ~10^4 operations). Arguments and results as `cov_tick`'s."""
+  aux = pack_aux(spec, A, B, H, innov, enable, due)
+  p_out, out = dict(enumerate(P.T)), {}
 
   def p_store(i, j, v):
-    p_out[(i, j)] = p_out[(j, i)] = v
+    p_out[TRI_INDEX[(i, j)]] = v
 
-  tick_body(spec, resets, lambda i, j: Pt[N_ERR * i + j], p_store, lambda k: aux[k], out.__setitem__, stage)
-  Po = jnp.stack([p_out[(i, j)] for i in range(N_ERR) for j in range(N_ERR)])
-  return unpack(Po, jnp.stack([out[k] for k in range(len(out))]), nb)
+  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store, lambda k: aux[:, k],
+            out.__setitem__, stage)
+  return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1),
+          *_unpack_out(jnp.stack([out[k] for k in range(len(out))], axis=1), spec))
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "resets", "stage", "interpret", "triangle"))
-def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", interpret=None,
-             triangle: bool = True):
+@functools.partial(jax.jit, static_argnames=("spec", "resets", "stage"))
+@_packed_io
+def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
   """The tick's covariance work for a batch of B vehicles as one Mosaic GPU kernel (NVIDIA Hopper or newer).
 
-  P: [B, 15, 15] symmetric covariance before the prediction. A, B: [B, 3, 3] F's blocks (`ekf._predict_nominal`).
-  H: [B, 13, 15] observation Jacobian (its entries on `spec.h_entries()` are read). innov: [B, 13]. enable: [B, 13]
-  bool. due: [B, 3] bool, the timeout resets due (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`.
-  Returns (P [B, 15, 15], dx [B, 15], ratio [B, 13], accept [B, 13] bool). stage: see `tick_body`.
-  triangle: shared memory holds P's upper triangle only (120 rows, copied in and out as 15 row ranges; XLA mirrors
-  it on the way out) and the outputs overwrite aux in place: 104 KB per program instead of 180, two programs per SM.
-  interpret: Mosaic GPU's interpreter parameters (`InterpretGPUParams()`: runs on the CPU, for tests)."""
+  P: [B, 121] packed (`ekf.pack_p`, the env's layout with this kernel), returned packed; or [B, 15, 15] symmetric,
+  returned so (packed and unpacked around the kernel). The covariance before the prediction.
+  A, B: [B, 3, 3] F's blocks (`ekf._predict_nominal`). H: [B, 13, 15] observation Jacobian (its entries on
+  `spec.h_entries()` are read). innov: [B, 13]. enable: [B, 13] bool. due: [B, 3] bool, the timeout resets due
+  (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`. Returns (P, dx [B, 15], ratio [B, 13],
+  accept [B, 13] bool). stage: see `tick_body`.
+
+  Layout: everything batch-major as the env holds it, no transposes. P [B, 121] and aux [B, stride] (`pack_aux`)
+  row-major, viewed as [B n / 128, 128]: program b's 128 vehicles are the rows n b + [0, n), one TMA copy each into
+  shared memory, where lane v reads its vehicle's entry k at word n v + k (n odd: the 32 lanes of a warp hit 32
+  banks). P and the outputs are written back in place and copied out the same way: 100 KB per program, two per SM."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
   bp = -(-nb // LANES) * LANES
-  lay = Layout(spec)
-  Pt, aux = (jnp.pad(x, ((0, 0), (0, bp - nb))) for x in pack(spec, P, A, B, H, innov, enable, due))
+  na = Layout(spec).stride
   f32 = jnp.float32
-  # P's rows in shared memory: all 225, or the upper triangle's 120 (row i's entries j >= i as one range)
-  ranges = [(N_ERR * i + i, TRI_INDEX[(i, i)], N_ERR - i) for i in range(N_ERR)] if triangle else [(0, 0, 225)]
-  p_row = (lambda i, j: TRI_INDEX[(min(i, j), max(i, j))]) if triangle else (lambda i, j: N_ERR * i + j)
+  Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
+  aux = jnp.pad(pack_aux(spec, A, B, H, innov, enable, due), ((0, bp - nb), (0, 0))).reshape(bp * na // LANES, LANES)
 
-  def kernel(p_gmem, aux_gmem, po_gmem, out_gmem, p_smem, aux_smem, *scratch):
-    *out_smem, p_bar, aux_bar = scratch
-    out_smem = out_smem[0] if out_smem else aux_smem
-    blk = pl.ds(jax.lax.axis_index("b") * LANES, LANES)
-    for g, s_, n in ranges:
-      plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(g, n), blk], p_smem.at[pl.ds(s_, n)], p_bar)
-    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
+  def kernel(p_gmem, aux_gmem, po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar):
+    b = jax.lax.axis_index("b")
+    plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(b * N_PACKED, N_PACKED)], p_smem, p_bar)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[pl.ds(b * na, na)], aux_smem, aux_bar)
+    p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] views
+    a_vm = aux_smem.reshape(LANES * na).reshape(LANES, na)
     plgpu.barrier_wait(p_bar)
     plgpu.barrier_wait(aux_bar)
 
     def p_store(i, j, v):
-      p_smem[p_row(i, j)] = v
-      if i != j and not triangle:
-        p_smem[p_row(j, i)] = v
+      p_vm[:, TRI_INDEX[(i, j)]] = v
 
     def store(k, v):
-      out_smem[k] = v
+      a_vm[:, k] = v
 
-    tick_body(spec, resets, lambda i, j: p_smem[p_row(i, j)], p_store, lambda k: aux_smem[k], store, stage)
+    tick_body(spec, resets, lambda i, j: p_vm[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store,
+              lambda k: a_vm[:, k], store, stage)
     plgpu.commit_smem()
-    for g, s_, n in ranges:
-      plgpu.copy_smem_to_gmem(p_smem.at[pl.ds(s_, n)], po_gmem.at[pl.ds(g, n), blk])
-    plgpu.copy_smem_to_gmem(out_smem.at[pl.ds(0, lay.n_out)], out_gmem.at[:, blk])
+    plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
+    plgpu.copy_smem_to_gmem(aux_smem, out_gmem.at[pl.ds(b * na, na)])
     plgpu.wait_smem_to_gmem(0)
 
-  # triangle: the outputs overwrite aux in place (every load of tick_body precedes its first store)
-  out_scratch = [] if triangle else [plgpu.SMEM((lay.n_out, LANES), f32)]
   Po, out = plgpu.kernel(
-    kernel, out_type=(jax.ShapeDtypeStruct((N_ERR * N_ERR, bp), f32), jax.ShapeDtypeStruct((lay.n_out, bp), f32)),
+    kernel, out_type=(jax.ShapeDtypeStruct(Pg.shape, f32), jax.ShapeDtypeStruct(aux.shape, f32)),
     grid=(bp // LANES,), grid_names=("b",),
-    scratch_types=[plgpu.SMEM((120 if triangle else 225, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32)]
-    + out_scratch + [plgpu.Barrier(num_arrivals=len(ranges)), plgpu.Barrier(num_arrivals=1)],
-    compiler_params=None if interpret else plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane),
-    interpret=interpret)(Pt, aux)
-  return unpack(Po, out, nb, upper_only=triangle)
+    scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((na, LANES), f32),
+                   plgpu.Barrier(num_arrivals=1), plgpu.Barrier(num_arrivals=1)],
+    compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane))(Pg, aux)
+  return (Po.reshape(bp, N_PACKED)[:nb], *_unpack_out(out.reshape(bp, na)[:nb], spec))
 
 
 def resets_of(cfg):

@@ -70,8 +70,8 @@ def test_kernel_equals_the_xla_tick_interpreted(vehicle, stale):
 
 
 def test_padded_layout_of_P_goes_through_the_kernel_unchanged():
-  """P kept as [16, 16] with a zero last row and column (ekf_init(padded=True)): the kernel takes and returns that
-  layout, equal to the [15, 15] result with the padding still exactly zero; the XLA tick accepts it too."""
+  """P kept as [16, 16] with a zero last row and column (ekf_init(p_layout="padded")): the kernel takes and returns
+  that layout, equal to the [15, 15] result with the padding still exactly zero; the XLA tick accepts it too."""
   cfg = ekf_lib.EKFConfig.drone()
   P, A, B, H, innov, en, due = _batch(cfg, 21, seed=5)
   P16 = jnp.pad(P, ((0, 0), (0, 1), (0, 1)))
@@ -113,16 +113,16 @@ def test_ekf_step_with_the_kernel_follows_the_xla_step():
   rd[2] = rd[2].replace(gps_pos=rd[2].gps_pos.at[50:, 0].add(1.0 - 50.0))
   readings = jax.tree.map(lambda *x: jnp.stack(x), *rd)
 
-  def run(fused, padded=False):
+  def run(fused, p_layout="square"):
     def one(r):
-      s0 = ekf_lib.ekf_init(cfg, jax.tree.map(lambda x: x[0], r), padded=padded)
+      s0 = ekf_lib.ekf_init(cfg, jax.tree.map(lambda x: x[0], r), p_layout=p_layout)
       step = lambda s, x: (ekf_lib.ekf_step(cfg, s, x, DT, fused=fused),) * 2
       return jax.lax.scan(step, s0, jax.tree.map(lambda x: x[1:], r))[1]
     return jax.jit(jax.vmap(one))(readings)
 
-  ref, out = run(False), run("interpret", padded=True)    # the env's layout with the kernel: P padded to [16, 16]
+  ref, out = run(False), run("interpret", p_layout="padded")    # the env's layout with the kernel: P padded to [16, 16]
   assert out.P.shape[-2:] == (16, 16) and not np.any(np.asarray(out.P[..., 15, :]))
-  out = out.replace(P=ekf_lib.unpadded(out.P))
+  out = out.replace(P=ekf_lib.as_square(out.P))
   assert float(ref.n_resets[1, -1]) >= 1 and float(ref.n_resets[2, -1]) == 0   # the scenarios do what they say
   np.testing.assert_array_equal(np.asarray(out.accepted), np.asarray(ref.accepted))
   np.testing.assert_array_equal(np.asarray(out.n_resets), np.asarray(ref.n_resets))
@@ -154,7 +154,8 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
   masks = jnp.stack([jnp.zeros(len(SENSOR_NAMES)).at[SENSOR_NAMES.index(s)].set(1.0) for s in ("gyro", "accel", "gps")])
 
   def run(fused):
-    e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0), padded=bool(fused))   # the env keeps P padded with the kernel
+    # the env keeps P padded with the kernel
+    e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0), p_layout="padded" if fused else "square")
     tick = jax.jit(jax.vmap(lambda st, rd, m: recon.recon_tick(cfg, params, st, e0, rd, controls, m, True, RDT,
                                                                 fused=fused)[:2], in_axes=(0, None, 0)))
     st = jax.vmap(lambda _: recon.recon_init(cfg, e0))(jnp.arange(3))
@@ -171,7 +172,7 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
     np.testing.assert_allclose(np.asarray(getattr(out.shadow, name)), np.asarray(getattr(ref.shadow, name)),
                                atol=1e-5, err_msg=name)
   assert out.shadow.P.shape[-1] == 16 and not np.any(np.asarray(out.shadow.P[:, 15]))
-  np.testing.assert_allclose(np.asarray(ekf_lib.unpadded(out.shadow.P)), np.asarray(ref.shadow.P), rtol=1e-3,
+  np.testing.assert_allclose(np.asarray(ekf_lib.as_square(out.shadow.P)), np.asarray(ref.shadow.P), rtol=1e-3,
                              atol=1e-7)
   np.testing.assert_array_equal(np.asarray(out.shadow.accepted), np.asarray(ref.shadow.accepted))
 
@@ -198,4 +199,4 @@ def test_phase2_env_with_the_kernel_follows_the_xla_env():
   np.testing.assert_allclose(np.asarray(out.reward), np.asarray(ref.reward), rtol=1e-3, atol=1e-4)
   e, e_ref = out.info["sim"]["ekf"], ref.info["sim"]["ekf"]
   assert not np.any(np.asarray(e.P[..., 15, :]))
-  np.testing.assert_allclose(np.asarray(ekf_lib.unpadded(e.P)), np.asarray(e_ref.P), rtol=1e-2, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(ekf_lib.as_square(e.P)), np.asarray(e_ref.P), rtol=1e-2, atol=1e-6)

@@ -1,6 +1,7 @@
 """The per-lane covariance kernel (specguard_jax/ekf_lanes.py, `fused_ekf="lanes"`): its body equals ekf._cov_tick,
-its Mosaic GPU kernel lowers for CUDA and runs its blocks in Mosaic GPU's CPU interpreter, and ekf_step / the env
-route a vmapped batch through it (compiled and timed only on a GPU: bench/ekf_lanes.py, BENCHMARKS.md session 35)."""
+its Mosaic GPU kernel lowers for CUDA, its packed layouts of P and of the other inputs, and ekf_step / the env route a
+vmapped batch through it with P kept packed (compiled, checked and timed on a GPU: the gpu-marked test here,
+bench/ekf_lanes.py, BENCHMARKS.md sessions 35-36)."""
 
 import jax
 import jax.numpy as jnp
@@ -46,24 +47,71 @@ def test_kernel_lowers_for_cuda(vehicle):
   assert "mosaic_gpu" in text
 
 
-@pytest.mark.parametrize("triangle", [True, False])
-def test_kernel_blocks_in_mosaic_interpreter(triangle):
-  """The kernel's plumbing (transposes, padding to whole blocks, each program's TMA copies at its own offset: P's
-  upper triangle as 15 row ranges mirrored on the way out, or all 225 rows; P and the outputs written in place) in
-  Mosaic GPU's interpreter on the CPU, with the copy stage (P and out copied from P and aux): 300 vehicles, 3
-  programs. The full body's arithmetic is checked above (interpreted it takes minutes per program)."""
-  pytest.importorskip("jax.experimental.pallas.mosaic_gpu")
-  params = pytest.importorskip("jax._src.pallas.mosaic_gpu.interpret.params")
+def test_kernel_takes_and_returns_either_layout_of_P():
+  """cov_tick's P packed [B, 121] (the env's layout with this kernel) or square [B, 15, 15], returned in the same
+  layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`). Mosaic GPU's CPU
+  interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on the GPU only
+  (`test_kernel_on_gpu_equals_xla_tick`, bench/ekf_lanes.py)."""
+  cfg = _cfg("rover")
+  args = _batch(cfg, 40, seed=2)
+  spec = ekf_lib._cov_spec(cfg, DT, ())
+  square = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), *args)
+  packed = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), ekf_lib.pack_p(args[0]), *args[1:])
+  assert square[0].shape == (40, 15, 15) and packed[0].shape == (40, ekf_lib.N_PACKED)
+  np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(packed[0])), np.asarray(square[0]))
+  np.testing.assert_array_equal(np.asarray(packed[0][:, -1]), 0.0)
+  for x, y in zip(square[1:], packed[1:]):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_packed_layout_helpers_equal_the_square_ones():
+  """What the env and the reconstruction do to P outside the tick (reset_block, add_to_diag, p_diag, p_entry,
+  normalized-innovation variances), on P packed, equals the same on P square."""
+  rng = np.random.default_rng(0)
+  M = rng.normal(size=(15, 15)).astype(np.float32)
+  P = jnp.asarray(M @ M.T + np.eye(15, dtype=np.float32))
+  Pk = ekf_lib.pack_p(P)
+  assert ekf_lib.p_layout(Pk) == "packed" and ekf_lib.p_layout(P) == "square"
+  np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(Pk)), np.asarray(P))
+  for do in (True, False):
+    np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(ekf_lib.reset_block(Pk, [9, 10, 11], 0.25, do))),
+                                  np.asarray(ekf_lib.reset_block(P, [9, 10, 11], 0.25, do)))
+  d = jnp.arange(15, dtype=jnp.float32)
+  np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(ekf_lib.add_to_diag(Pk, d))),
+                                np.asarray(ekf_lib.add_to_diag(P, d)))
+  np.testing.assert_array_equal(np.asarray(ekf_lib.p_diag(Pk)), np.diag(np.asarray(P)))
+  assert float(ekf_lib.p_entry(Pk, 7, 2)) == float(P[2, 7])
+  H = jnp.asarray(rng.normal(size=(13, 15)).astype(np.float32))
+  np.testing.assert_allclose(np.asarray(ekf_lib._hph(H, Pk, 11)), np.asarray(ekf_lib._hph(H, P, 11)), rtol=1e-6)
+  with pytest.raises(ValueError, match=r"P of shape \(14,\) is in none of the layouts"):
+    ekf_lib.p_layout(jnp.zeros(14))
+
+
+def test_aux_block_places_inputs_at_the_layout_offsets():
+  """pack_aux: each input at its `Layout` offset, zero-padded to an odd stride (the kernel's conflict-free reads)."""
   cfg = _cfg("drone")
-  P, A, B, H, innov, enable, due = _batch(cfg, 300, seed=1)
-  spec = ekf_lib._cov_spec(cfg, DT, ("gps",))
-  P_out, dx, ratio, _ = ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), P, A, B, H, innov, enable, due,
-                                           stage="copy", interpret=params.InterpretGPUParams(),
-                                           triangle=triangle)
-  np.testing.assert_array_equal(np.asarray(P_out), np.asarray(P))
-  ab = np.concatenate([np.asarray(A).reshape(300, 9), np.asarray(B).reshape(300, 9)], axis=1)
-  np.testing.assert_array_equal(np.asarray(dx), ab[:, :15])
-  np.testing.assert_array_equal(np.asarray(ratio[:, :3]), ab[:, 15:])
+  P, A, B, H, innov, enable, due = _batch(cfg, 7, seed=3)
+  spec = ekf_lib._cov_spec(cfg, DT, ())
+  lay = ekf_lanes.Layout(spec)
+  aux = np.asarray(ekf_lanes.pack_aux(spec, A, B, H, innov, enable, due))
+  assert aux.shape == (7, lay.stride) and lay.stride % 2 == 1 and lay.stride - lay.n_aux in (0, 1)
+  np.testing.assert_array_equal(aux[:, lay.B:lay.B + 9], np.asarray(B).reshape(7, 9))
+  i, c = spec.h_entries()[3]
+  np.testing.assert_array_equal(aux[:, lay.H + 3], np.asarray(H)[:, i, c])
+  np.testing.assert_array_equal(aux[:, lay.en:lay.en + 13], np.asarray(enable, np.float32))
+  np.testing.assert_array_equal(aux[:, lay.due:lay.due + 3], np.asarray(due, np.float32))
+  np.testing.assert_array_equal(aux[:, lay.n_aux:], 0.0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(jax.default_backend() != "gpu", reason="the Mosaic GPU kernel needs an NVIDIA Hopper GPU")
+@pytest.mark.parametrize("stale", [(), ("gps",)])
+def test_kernel_on_gpu_equals_xla_tick(stale):
+  """The compiled kernel (300 vehicles: 3 programs, the last one part padding) against the reference."""
+  cfg = _cfg("drone")
+  args = _batch(cfg, 300, seed=4)
+  out = ekf_lanes.cov_tick(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args)
+  _check(_xla(cfg, stale)(*args), out)
 
 
 @pytest.fixture
@@ -72,14 +120,14 @@ def lanes_on_cpu(monkeypatch):
   is the routing around it. Returns the list of P shapes it was called with."""
   calls = []
 
-  def fake(spec, resets, P, A, B, H, innov, enable, due, stage="full", interpret=None):
+  def fake(spec, resets, P, A, B, H, innov, enable, due, stage="full"):
     calls.append(P.shape)
     cfg = fake.cfg
     noise, gate = ekf_lib._noise_and_gates(cfg)
     stale = () if spec.used[0] else ("gps",)
     return jax.vmap(lambda *x: ekf_lib._cov_tick(cfg, *x[:3], spec.dt, *x[3:5], jnp.asarray(noise) ** 2,
                                                  jnp.asarray(gate), *x[5:], stale, unrolled=True))(
-        P, A, B, H, innov, enable, due)
+        P, A, B, H, innov, enable, due)      # P packed in, packed out (`_cov_tick` keeps P's layout)
 
   fake.cfg = _cfg("drone")
   monkeypatch.setattr(ekf_lanes, "cov_tick", fake)
@@ -87,11 +135,11 @@ def lanes_on_cpu(monkeypatch):
 
 
 def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
-  """A drone env with fused_ekf="lanes" (the kernel stood in for on the CPU) keeps P [15, 15], hands the kernel the
-  whole vmapped batch, and steps as the XLA env does: 6 steps of 3 vehicles."""
+  """A drone env with fused_ekf="lanes" (the kernel stood in for on the CPU) keeps P packed [121] from reset on,
+  hands the kernel the whole vmapped batch, and steps as the XLA env does: 6 steps of 3 vehicles."""
   import envs
   ref_env, env = envs.make("drone"), envs.make("drone")
-  env._fused_ekf = env._fused_shadow = "lanes"
+  env._fused_ekf = env._fused_shadow = "lanes"     # (envs.make(fused_ekf="lanes") would need a Hopper GPU)
   keys = jax.random.split(jax.random.PRNGKey(3), 3)
 
   def rollout(e):
@@ -100,11 +148,11 @@ def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
     return jax.lax.scan(step, s0, None, length=6)[1]
 
   ref, out = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
-  assert lanes_on_cpu and all(shape == (3, 15, 15) for shape in lanes_on_cpu)
-  assert out.info["sim"]["ekf"].P.shape == (6, 3, 15, 15)
+  assert lanes_on_cpu and all(shape == (3, ekf_lib.N_PACKED) for shape in lanes_on_cpu)
+  assert out.info["sim"]["ekf"].P.shape == (6, 3, ekf_lib.N_PACKED)
   np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-4, atol=1e-4)
-  np.testing.assert_allclose(np.asarray(out.info["sim"]["ekf"].P), np.asarray(ref.info["sim"]["ekf"].P),
-                             rtol=1e-4, atol=1e-8)
+  np.testing.assert_allclose(np.asarray(ekf_lib.as_square(out.info["sim"]["ekf"].P)),
+                             np.asarray(ref.info["sim"]["ekf"].P), rtol=1e-4, atol=1e-8)
 
 
 def test_fused_ekf_names_a_kernel():

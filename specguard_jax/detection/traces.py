@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from specguard_jax import ekf as ekf_lib
 from specguard_jax.attacks import attacks as attacks_lib
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.detection import detector as det
@@ -76,7 +77,8 @@ def record_ticks(env, keys, attacks, n_ticks: int, world_ids=None) -> TickTrace:
 
 def _slim_ekf(ekf):
   """Drop the covariance (not used by the detector) to keep traces small."""
-  return ekf.replace(P=jnp.zeros(ekf.P.shape[:-2] + (0, 0)))
+  lead = ekf.P.shape[:-1] if ekf_lib.p_layout(ekf.P) == "packed" else ekf.P.shape[:-2]
+  return ekf.replace(P=jnp.zeros(lead + (0, 0)))
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "dt"))

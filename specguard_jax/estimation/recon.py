@@ -425,10 +425,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   # process noise (the accel-bias state restarts when the accelerometer is newly replaced, above).
   q = jnp.where(mask[gi], cfg.model_rate_noise ** 2 * dt, 0.0)
   qa = jnp.where(mask[ai], cfg.model_accel_noise ** 2 * dt, 0.0)
-  n = shadow.P.shape[-1]   # P of either layout; the diagonal as selects (elementwise, no scatter)
-  gb, ab = (np.isin(np.arange(n), _GBIAS_IDX), np.isin(np.arange(n), _ABIAS_IDX))
+  gb, ab = (np.isin(np.arange(ekf_lib.N_ERR), _GBIAS_IDX), np.isin(np.arange(ekf_lib.N_ERR), _ABIAS_IDX))
   q_diag = jnp.where(gb, q, jnp.where(ab, qa, 0.0))
-  shadow = shadow.replace(P=shadow.P + np.eye(n, dtype=np.float32) * q_diag[None, :])
+  shadow = shadow.replace(P=ekf_lib.add_to_diag(shadow.P, q_diag))   # P in any layout, elementwise (no scatter)
   shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused)
   with jax.named_scope("shadow_ekf"):
     shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
