@@ -9,11 +9,11 @@ One program owns 128 vehicles, one per thread of a warpgroup, so in the kernel e
 vector and the tick is straight-line per-lane code with P's symmetry and F's / H's sparsity resolved statically: no
 shuffles, no masked reductions, no [B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per
 tick and the Triton tile kernel `ekf_kernel.py` pay for). P lives in registers during the tick.
-Memory layout: batch-major as the env holds it, no transposes: P packed ([B, 121]: its upper triangle and a zero,
-`ekf.pack_p`; the env keeps P so with this kernel, `ekf_init(p_layout="packed")`) and the other inputs as one
-[B, stride] block (`pack_aux`); each program copies its 128 vehicles' contiguous rows into shared memory with one
-TMA copy per array and each lane reads its own vehicle's entries at an odd stride (conflict-free), the outputs
-written back in place: 100 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
+Memory layout: P batch-major as the env holds it, no transposes: packed ([B, 121]: its upper triangle and a zero,
+`ekf.pack_p`; the env keeps P so with this kernel, `ekf_init(p_layout="packed")`); each program copies its 128
+vehicles' contiguous rows into shared memory with one TMA copy and each lane reads its own vehicle's entries at an
+odd stride (conflict-free); P written back in place. The other inputs vehicle-minor ([n_aux, B], `pack_aux`, one
+fusion of XLA's), the outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
 vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
 
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
@@ -57,7 +57,6 @@ class Layout:
     self.en = self.innov + N_ROWS
     self.due = self.en + N_ROWS
     self.n_aux = self.due + 3
-    self.stride = self.n_aux | 1     # a vehicle's floats in the batch-major aux (odd: conflict-free lane reads)
     self.dx, self.ratio, self.acc = 0, N_ERR, N_ERR + N_ROWS
     self.n_out = N_ERR + 2 * N_ROWS
 
@@ -219,20 +218,20 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
 
 
 def pack_aux(spec, A, B, H, innov, enable, due):
-  """The tick's per-vehicle inputs besides P, batch-major: [B, Layout.stride] float32, rows as `Layout` places them
-  (zero-padded to the odd stride)."""
+  """The tick's per-vehicle inputs besides P, vehicle-minor: aux [n_aux, B] float32, rows as `Layout` places them
+  (XLA writes it in one fusion, reading each input coalesced; batch-major [B, n_aux] it reads them ~32 arrays per
+  warp: 70 us per drone tick at 65,536 vehicles, session 36)."""
   nb = A.shape[0]
-  lay = Layout(spec)
-  f32 = jnp.float32
   hd = jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1)
-  return jnp.concatenate([A.reshape(nb, 9).astype(f32), B.reshape(nb, 9).astype(f32), hd.astype(f32),
-                          innov.astype(f32), enable.astype(f32), due.astype(f32),
-                          jnp.zeros((nb, lay.stride - lay.n_aux), f32)], axis=1)
+  aux = jnp.concatenate([A.reshape(nb, 9), B.reshape(nb, 9), hd, innov, enable.astype(jnp.float32),
+                         due.astype(jnp.float32)], axis=1)
+  return aux.astype(jnp.float32).T
 
 
-def _unpack_out(o, spec):
-  """out [B, >= n_out] -> (dx [B, 15], ratio [B, 13], accept [B, 13] bool)."""
+def _unpack_out(out, nb, spec):
+  """out [>= n_out, >= B] -> (dx [B, 15], ratio [B, 13], accept [B, 13] bool)."""
   lay = Layout(spec)
+  o = out[:lay.n_out, :nb].T
   return o[:, lay.dx:lay.dx + N_ERR], o[:, lay.ratio:lay.ratio + N_ROWS], o[:, lay.acc:lay.acc + N_ROWS] > 0.5
 
 
@@ -257,10 +256,10 @@ def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "ful
   def p_store(i, j, v):
     p_out[TRI_INDEX[(i, j)]] = v
 
-  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store, lambda k: aux[:, k],
+  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store, lambda k: aux[k],
             out.__setitem__, stage)
   return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1),
-          *_unpack_out(jnp.stack([out[k] for k in range(len(out))], axis=1), spec))
+          *_unpack_out(jnp.stack([out[k] for k in range(len(out))]), P.shape[0], spec))
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "resets", "stage"))
@@ -275,25 +274,26 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
   (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`. Returns (P, dx [B, 15], ratio [B, 13],
   accept [B, 13] bool). stage: see `tick_body`.
 
-  Layout: everything batch-major as the env holds it, no transposes. P [B, 121] and aux [B, stride] (`pack_aux`)
-  row-major, viewed as [B n / 128, 128]: program b's 128 vehicles are the rows n b + [0, n), one TMA copy each into
-  shared memory, where lane v reads its vehicle's entry k at word n v + k (n odd: the 32 lanes of a warp hit 32
-  banks). P and the outputs are written back in place and copied out the same way: 100 KB per program, two per SM."""
+  Layout: P batch-major as the env holds it, no transposes: [B, 121] row-major viewed as [B 121 / 128, 128], so
+  program b's 128 vehicles are the rows 121 b + [0, 121), one TMA copy into shared memory, where lane v reads its
+  vehicle's entry k at word 121 v + k (121 is odd: the 32 lanes of a warp hit 32 banks); written back in place and
+  copied out the same way. The other inputs vehicle-minor (`pack_aux`, [n_aux, B]: program b's columns, row k a
+  [128] vector), the outputs written over them and copied out to [n_out, B]. 98 KB per program, two per SM."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
   bp = -(-nb // LANES) * LANES
-  na = Layout(spec).stride
+  lay = Layout(spec)
   f32 = jnp.float32
   Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
-  aux = jnp.pad(pack_aux(spec, A, B, H, innov, enable, due), ((0, bp - nb), (0, 0))).reshape(bp * na // LANES, LANES)
+  aux = jnp.pad(pack_aux(spec, A, B, H, innov, enable, due), ((0, 0), (0, bp - nb)))
 
   def kernel(p_gmem, aux_gmem, po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar):
     b = jax.lax.axis_index("b")
+    blk = pl.ds(b * LANES, LANES)
     plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(b * N_PACKED, N_PACKED)], p_smem, p_bar)
-    plgpu.copy_gmem_to_smem(aux_gmem.at[pl.ds(b * na, na)], aux_smem, aux_bar)
-    p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] views
-    a_vm = aux_smem.reshape(LANES * na).reshape(LANES, na)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
+    p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] view
     plgpu.barrier_wait(p_bar)
     plgpu.barrier_wait(aux_bar)
 
@@ -301,22 +301,22 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
       p_vm[:, TRI_INDEX[(i, j)]] = v
 
     def store(k, v):
-      a_vm[:, k] = v
+      aux_smem[k] = v
 
     tick_body(spec, resets, lambda i, j: p_vm[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store,
-              lambda k: a_vm[:, k], store, stage)
+              lambda k: aux_smem[k], store, stage)
     plgpu.commit_smem()
     plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
-    plgpu.copy_smem_to_gmem(aux_smem, out_gmem.at[pl.ds(b * na, na)])
+    plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(0, lay.n_out)], out_gmem.at[:, blk])
     plgpu.wait_smem_to_gmem(0)
 
   Po, out = plgpu.kernel(
-    kernel, out_type=(jax.ShapeDtypeStruct(Pg.shape, f32), jax.ShapeDtypeStruct(aux.shape, f32)),
+    kernel, out_type=(jax.ShapeDtypeStruct(Pg.shape, f32), jax.ShapeDtypeStruct((lay.n_out, bp), f32)),
     grid=(bp // LANES,), grid_names=("b",),
-    scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((na, LANES), f32),
+    scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32),
                    plgpu.Barrier(num_arrivals=1), plgpu.Barrier(num_arrivals=1)],
     compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane))(Pg, aux)
-  return (Po.reshape(bp, N_PACKED)[:nb], *_unpack_out(out.reshape(bp, na)[:nb], spec))
+  return (Po.reshape(bp, N_PACKED)[:nb], *_unpack_out(out, nb, spec))
 
 
 def resets_of(cfg):

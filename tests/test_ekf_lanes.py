@@ -88,19 +88,18 @@ def test_packed_layout_helpers_equal_the_square_ones():
 
 
 def test_aux_block_places_inputs_at_the_layout_offsets():
-  """pack_aux: each input at its `Layout` offset, zero-padded to an odd stride (the kernel's conflict-free reads)."""
+  """pack_aux: each input in its `Layout` row of the vehicle-minor block the kernel reads."""
   cfg = _cfg("drone")
   P, A, B, H, innov, enable, due = _batch(cfg, 7, seed=3)
   spec = ekf_lib._cov_spec(cfg, DT, ())
   lay = ekf_lanes.Layout(spec)
   aux = np.asarray(ekf_lanes.pack_aux(spec, A, B, H, innov, enable, due))
-  assert aux.shape == (7, lay.stride) and lay.stride % 2 == 1 and lay.stride - lay.n_aux in (0, 1)
-  np.testing.assert_array_equal(aux[:, lay.B:lay.B + 9], np.asarray(B).reshape(7, 9))
+  assert aux.shape == (lay.n_aux, 7)
+  np.testing.assert_array_equal(aux[lay.B:lay.B + 9].T, np.asarray(B).reshape(7, 9))
   i, c = spec.h_entries()[3]
-  np.testing.assert_array_equal(aux[:, lay.H + 3], np.asarray(H)[:, i, c])
-  np.testing.assert_array_equal(aux[:, lay.en:lay.en + 13], np.asarray(enable, np.float32))
-  np.testing.assert_array_equal(aux[:, lay.due:lay.due + 3], np.asarray(due, np.float32))
-  np.testing.assert_array_equal(aux[:, lay.n_aux:], 0.0)
+  np.testing.assert_array_equal(aux[lay.H + 3], np.asarray(H)[:, i, c])
+  np.testing.assert_array_equal(aux[lay.en:lay.en + 13].T, np.asarray(enable, np.float32))
+  np.testing.assert_array_equal(aux[lay.due:lay.due + 3].T, np.asarray(due, np.float32))
 
 
 @pytest.mark.gpu
