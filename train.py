@@ -78,9 +78,10 @@ def parse_args(argv=None):
   ap.add_argument("--sequential-sweep", action="store_true",
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
-  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=None,
-                  help="the EKF's covariance work as one GPU kernel per tick: lanes (what the bare flag picks: "
-                       "per-lane Mosaic GPU, NVIDIA Hopper or newer) or triton (any NVIDIA GPU; longer compiles)")
+  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton", "xla"), default=None,
+                  help="the EKF's covariance work as one GPU kernel per tick: lanes (what the bare flag picks, and the "
+                       "default on an NVIDIA Hopper or newer GPU: per-lane Mosaic GPU), triton (any NVIDIA GPU; "
+                       "longer compiles) or xla (no kernel: XLA's fusions, the default elsewhere)")
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")
@@ -123,7 +124,8 @@ def build_config(a):
             "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
-            "num_devices": a.devices, "env_groups": a.env_groups, "fused_ekf": a.fused_ekf,
+            "num_devices": a.devices, "env_groups": a.env_groups,
+            "fused_ekf": False if a.fused_ekf == "xla" else a.fused_ekf,
             "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:

@@ -94,6 +94,14 @@ def ekf_kernel_kind(fused_ekf) -> str:
   raise ValueError(f"fused_ekf must be false, true or one of {', '.join(EKF_KERNELS)}; got {fused_ekf!r}")
 
 
+def lanes_kernel_supported() -> bool:
+  """Whether the default device runs the "lanes" kernel: an NVIDIA GPU of compute capability 9.0 (Hopper) or newer."""
+  if jax.default_backend() != "gpu":
+    return False
+  cc = getattr(jax.devices()[0], "compute_capability", None)
+  return cc is not None and float(cc) >= 9.0
+
+
 def check_ekf_kernel(fused_ekf) -> str:
   """`ekf_kernel_kind`, and a clear error where the kernel cannot run: no GPU, or "lanes" (Mosaic GPU: TMA and
   warpgroups) on an NVIDIA GPU older than Hopper (compute capability 9.0)."""
@@ -620,7 +628,7 @@ class RAVEnv(Env):
     leg_next = nxt - target
     leg_next = leg_next / (math3d.norm(leg_next) + 1e-6)
     qpos = self._query_pos(pos)
-    d_obs, g_obs = jax.value_and_grad(lambda p: worlds_lib.obstacle_sdf(world, p))(qpos)
+    d_obs, g_obs = worlds_lib.obstacle_sdf_and_grad(world, qpos)
     q = worlds_lib.world_queries(world, mission, qpos, nav.target)
     obs = jnp.concatenate([
         pos - target, vel, acc, euler, leg_next, -g_obs,

@@ -446,6 +446,23 @@ def obstacle_sdf(world: World, pos: jnp.ndarray) -> jnp.ndarray:
                      geo.sdf_boxes(pos, world.boxes, world.box_mask))
 
 
+def obstacle_sdf_and_grad(world: World, pos: jnp.ndarray):
+  """(obstacle_sdf(world, pos) [], its gradient w.r.t. pos [3]): the nearest valid obstacle's SDF gradient (a unit
+  vector away from it, zero if there is none), from one reverse pass over that obstacle alone instead of over all
+  of them (what jax.value_and_grad(obstacle_sdf) does: ~2x the forward's work per env, session 36). Equal to it
+  except where two obstacles are exactly equally near (there it averages their gradients, this takes one), and
+  where XLA recomputes the min in the reverse pass with another rounding (no obstacle equals it there: the autodiff
+  gradient is 0, seen jitted on the CPU; an argmin cannot miss)."""
+  dc = jnp.where(world.cylinder_mask, jax.vmap(geo.sdf_cylinder, (None, 0))(pos, world.cylinders), geo.FAR)
+  db = jnp.where(world.box_mask, jax.vmap(geo.sdf_box, (None, 0))(pos, world.boxes), geo.FAR)
+  ic, ib = jnp.argmin(dc), jnp.argmin(db)
+  d = jnp.minimum(jnp.minimum(dc[ic], db[ib]), geo.FAR)
+  gc = jax.grad(geo.sdf_cylinder)(pos, world.cylinders[ic])
+  gb = jax.grad(geo.sdf_box)(pos, world.boxes[ib])
+  g = jnp.where(dc[ic] <= db[ib], jnp.where(world.cylinder_mask[ic], gc, 0.0), jnp.where(world.box_mask[ib], gb, 0.0))
+  return d, g
+
+
 def fence_distances(world: World, pos: jnp.ndarray):
   """(margin, h, v) of pos [3] w.r.t. the nearest forbidden region, uncapped; > 0 on the allowed side, m.
 

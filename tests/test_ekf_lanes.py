@@ -87,6 +87,27 @@ def test_packed_layout_helpers_equal_the_square_ones():
     ekf_lib.p_layout(jnp.zeros(14))
 
 
+def test_an_outer_vmap_joins_the_kernels_batch(monkeypatch):
+  """Under a second vmap (a sweep's members) the kernel still gets one flat batch: [members x B] vehicles, the
+  results split back per member (the kernel stood in for by its plain-JAX body on the CPU)."""
+  cfg = _cfg("drone")
+  spec, resets = ekf_lib._cov_spec(cfg, DT, ()), ekf_lanes.resets_of(cfg)
+  seen = []
+
+  def fake(spec, resets, P, *args, stage, in_place):
+    seen.append(P.shape)
+    return ekf_lanes.cov_tick_xla(spec, resets, P, *args, stage=stage)
+
+  monkeypatch.setattr(ekf_lanes, "_kernel", fake)
+  members = [_batch(cfg, 16, seed=s) for s in (1, 2, 3)]
+  stacked = [jnp.stack(x) for x in zip(*members)]
+  stacked[0] = ekf_lib.pack_p(stacked[0])
+  out = jax.vmap(lambda *a: ekf_lanes.cov_tick(spec, resets, *a))(*stacked)
+  assert seen[-1] == (48, ekf_lib.N_PACKED)    # (custom_vmap first traces the unbatched call: [16, 121])
+  for m, args in enumerate(members):
+    _check(ekf_lanes.cov_tick_xla(spec, resets, *args), (ekf_lib.as_square(out[0][m]),) + tuple(x[m] for x in out[1:]))
+
+
 def test_aux_block_places_inputs_at_the_layout_offsets():
   """pack_aux: each input in its `Layout` row of the vehicle-minor block the kernel reads."""
   cfg = _cfg("drone")
@@ -160,6 +181,27 @@ def test_fused_ekf_names_a_kernel():
                                                                                        "triton", "lanes"]
   with pytest.raises(ValueError, match="fused_ekf must be false, true or one of triton, lanes; got 'cuda'"):
     ekf_kernel_kind("cuda")
+
+
+def test_train_defaults_to_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
+  """train.py's GPU defaults pick fused_ekf="lanes" on a Hopper or newer GPU (faked here), XLA on older GPUs and on
+  the CPU; --fused-ekf xla turns the kernel off."""
+  import train as train_cli
+  from specguard_jax.ppo import runner
+
+  class Dev:
+    device_kind, compute_capability = "NVIDIA H200", "9.0"
+
+  assert runner.default_sizes("gpu")["fused_ekf"] is False          # this CPU machine
+  assert "fused_ekf" not in runner.default_sizes("cpu")
+  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+  monkeypatch.setattr(jax, "devices", lambda *a: [Dev()])
+  assert runner.default_sizes("gpu")["fused_ekf"] == "lanes"
+  Dev.compute_capability = "8.0"
+  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  monkeypatch.undo()
+  assert train_cli.build_config(train_cli.parse_args(["--fused-ekf", "xla"])).fused_ekf is False
+  assert train_cli.build_config(train_cli.parse_args([])).fused_ekf is False          # the CPU's default
 
 
 def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
