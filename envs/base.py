@@ -163,10 +163,10 @@ class EnvConfig:
   # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one GPU kernel per
   # tick for the whole batch (GPU only; a vmapped env's batch must be on one device: the trainer shard_maps the step,
   # ppo/iteration.group_step), the same filters to float32 rounding (BENCHMARKS.md): False (XLA); "lanes" the
-  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer: the drone's tick 3.1-3.7x quicker
-  # than XLA, its env step 3.73x -> 2.36x raw MJX at 65,536 envs on an H200, 3-8 s of compile per variant); True or
-  # "triton" the Triton tile kernel (ekf_kernel.py, any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P
-  # kept in its padded layout, ekf_init(p_layout="padded"); with "lanes" P is kept "packed").
+  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer, train.py's default there: the
+  # drone's tick 5x quicker than XLA, its env step 3.73x -> 2.14x raw MJX at 65,536 envs on an H200, 3-8 s of compile
+  # per variant; P kept packed, ekf_init(p_layout="packed")); True or "triton" the Triton tile kernel (ekf_kernel.py,
+  # any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P kept padded, ekf_init(p_layout="padded")).
   fused_ekf: bool | str = False
   # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
   # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every

@@ -223,3 +223,17 @@ def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
   assert check_ekf_kernel("triton") == "triton"
   monkeypatch.setattr(jax, "devices", lambda *a: [Hopper()])
   assert check_ekf_kernel(True) == "triton" and check_ekf_kernel("lanes") == "lanes"
+
+
+def test_a_run_trained_with_the_kernel_evaluates_on_the_cpu(tmp_path):
+  """A GPU run's config.json with fused_ekf="lanes" (train.py's default on Hopper GPUs) loads for evaluation on a
+  machine without the kernel (the choice is dropped: evaluation builds XLA envs); resuming it here is a one-line
+  error naming the kernel (its checkpointed env state holds P in the kernel's packed layout)."""
+  import json
+  from specguard_jax import controllers
+  from specguard_jax.ppo import config, runner
+  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig(fused_ekf="lanes").to_dict()))
+  cfg = controllers.load_run_config(str(tmp_path))
+  assert cfg.fused_ekf is False and cfg.vehicle == "drone"
+  with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
+    runner.load_run_config(str(tmp_path))
