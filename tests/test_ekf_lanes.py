@@ -137,19 +137,22 @@ def test_kernel_on_gpu_equals_xla_tick(stale):
 @pytest.fixture
 def lanes_on_cpu(monkeypatch):
   """ekf_lanes.cov_tick replaced by the XLA reference for the batch (the kernel itself needs a GPU): what is tested
-  is the routing around it. Returns the list of P shapes it was called with."""
+  is the routing around it. Returns the list of P shapes it was called with; `calls.cfgs` are the filters'
+  EKFConfigs it may be called for (the one whose spec and resets match the call's is used)."""
   calls = []
 
   def fake(spec, resets, P, A, B, H, innov, enable, due, stage="full"):
     calls.append(P.shape)
-    cfg = fake.cfg
-    noise, gate = ekf_lib._noise_and_gates(cfg)
     stale = () if spec.used[0] else ("gps",)
+    cfg = next(c for c in calls.cfgs
+               if ekf_lib._cov_spec(c, spec.dt, stale) == spec and ekf_lanes.resets_of(c) == resets)
+    noise, gate = ekf_lib._noise_and_gates(cfg)
     return jax.vmap(lambda *x: ekf_lib._cov_tick(cfg, *x[:3], spec.dt, *x[3:5], jnp.asarray(noise) ** 2,
                                                  jnp.asarray(gate), *x[5:], stale, unrolled=True))(
         P, A, B, H, innov, enable, due)      # P packed in, packed out (`_cov_tick` keeps P's layout)
 
-  fake.cfg = _cfg("drone")
+  calls = type("Calls", (list,), {})()
+  calls.cfgs = [_cfg("drone")]
   monkeypatch.setattr(ekf_lanes, "cov_tick", fake)
   return calls
 
@@ -173,6 +176,33 @@ def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
   np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-4, atol=1e-4)
   np.testing.assert_allclose(np.asarray(ekf_lib.as_square(out.info["sim"]["ekf"].P)),
                              np.asarray(ref.info["sim"]["ekf"].P), rtol=1e-4, atol=1e-8)
+
+
+def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
+  """The whole phase-2 env (autopilot EKF and the reconstruction's shadow filter on the kernel, stood in for on the
+  CPU; both P packed from reset on) against the XLA env: 8 closed-loop steps (40 ticks) of 3 vehicles, no attack
+  (what the reconstruction does to P under attack, on packed P: test_packed_layout_helpers_equal_the_square_ones)."""
+  import envs
+  kw = dict(control_mode="reactive", detector="residual", reconstruction=True)
+  ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
+  env._fused_ekf = env._fused_shadow = "lanes"
+  lanes_on_cpu.cfgs.append(env.recon_cfg.ekf_cfg())
+  keys = jax.random.split(jax.random.PRNGKey(3), 3)
+
+  def rollout(e):
+    s0 = jax.vmap(e.reset)(keys)
+    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
+    return s0, jax.lax.scan(step, s0, None, length=8)[1]
+
+  (s0_ref, ref), (s0, out) = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+  sim = s0.info["sim"]
+  assert sim["ekf"].P.shape == (3, ekf_lib.N_PACKED) and sim["recon"].shadow.P.shape == (3, ekf_lib.N_PACKED)
+  assert len(lanes_on_cpu) == 2     # the autopilot's and the shadow's EKF (on the CPU every tick is the full one)
+  np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-3, atol=1e-3)
+  np.testing.assert_allclose(np.asarray(out.reward), np.asarray(ref.reward), rtol=1e-3, atol=1e-4)
+  for get in (lambda o: o.info["sim"]["ekf"], lambda o: o.info["sim"]["recon"].shadow):
+    np.testing.assert_allclose(np.asarray(ekf_lib.as_square(get(out).P)), np.asarray(get(ref).P), rtol=1e-2,
+                               atol=1e-6)
 
 
 def test_fused_ekf_names_a_kernel():
