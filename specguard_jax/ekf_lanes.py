@@ -262,8 +262,9 @@ def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "ful
           *_unpack_out(jnp.stack([out[k] for k in range(len(out))]), P.shape[0], spec))
 
 
+JAX_VERSION = tuple(int(x) for x in jax.__version__.split(".")[:2])
 # P written in place through a jax Ref (jax >= 0.11; jax 0.10's Pallas cannot discharge a Ref into a Mosaic GPU kernel)
-IN_PLACE = tuple(int(x) for x in jax.__version__.split(".")[:2]) >= (0, 11)
+IN_PLACE = JAX_VERSION >= (0, 11)
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "resets", "stage", "in_place"))

@@ -214,8 +214,8 @@ def test_fused_ekf_names_a_kernel():
 
 
 def test_train_defaults_to_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
-  """train.py's GPU defaults pick fused_ekf="lanes" on a Hopper or newer GPU (faked here), XLA on older GPUs and on
-  the CPU; --fused-ekf xla turns the kernel off."""
+  """train.py's GPU defaults pick fused_ekf="lanes" on a Hopper or newer GPU (faked here) with jax >= 0.11, XLA on
+  older GPUs, with jax 0.10 and on the CPU; --fused-ekf xla turns the kernel off."""
   import train as train_cli
   from specguard_jax.ppo import runner
 
@@ -226,7 +226,11 @@ def test_train_defaults_to_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
   assert "fused_ekf" not in runner.default_sizes("cpu")
   monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
   monkeypatch.setattr(jax, "devices", lambda *a: [Dev()])
+  monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
   assert runner.default_sizes("gpu")["fused_ekf"] == "lanes"
+  monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 10))    # lowered there, never run on a GPU: opt-in
+  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
   Dev.compute_capability = "8.0"
   assert runner.default_sizes("gpu")["fused_ekf"] is False
   monkeypatch.undo()
