@@ -94,12 +94,18 @@ def ekf_kernel_kind(fused_ekf) -> str:
   raise ValueError(f"fused_ekf must be false, true or one of {', '.join(EKF_KERNELS)}; got {fused_ekf!r}")
 
 
+def _compute_capability() -> float | None:
+  """The default device's CUDA compute capability (None: not a GPU, or not reported)."""
+  if jax.default_backend() != "gpu":
+    return None
+  cc = getattr(jax.devices()[0], "compute_capability", None)
+  return None if cc is None else float(cc)
+
+
 def lanes_kernel_supported() -> bool:
   """Whether the default device runs the "lanes" kernel: an NVIDIA GPU of compute capability 9.0 (Hopper) or newer."""
-  if jax.default_backend() != "gpu":
-    return False
-  cc = getattr(jax.devices()[0], "compute_capability", None)
-  return cc is not None and float(cc) >= 9.0
+  cc = _compute_capability()
+  return cc is not None and cc >= 9.0
 
 
 def check_ekf_kernel(fused_ekf) -> str:
@@ -108,8 +114,8 @@ def check_ekf_kernel(fused_ekf) -> str:
   kind = ekf_kernel_kind(fused_ekf)
   if kind and jax.default_backend() != "gpu":
     raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
-  cc = getattr(jax.devices()[0], "compute_capability", None) if kind == "lanes" else None
-  if cc is not None and float(cc) < 9.0:
+  cc = _compute_capability() if kind == "lanes" else None
+  if cc is not None and cc < 9.0:
     raise ValueError(f"fused_ekf='lanes' needs an NVIDIA Hopper GPU or newer (compute capability 9.0); "
                      f"{jax.devices()[0].device_kind} is {cc}: use fused_ekf='triton' (--fused-ekf triton)")
   return kind

@@ -188,12 +188,19 @@ _VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, n
 N_PAD = 16   # size of the padded layout of P (ekf_init(p_layout="padded"))
 TRI = tuple((i, j) for i in range(N_ERR) for j in range(i, N_ERR))       # P's upper triangle, 120 entries
 TRI_INDEX = {ij: k for k, ij in enumerate(TRI)}
+
+
+def tri_index(i: int, j: int) -> int:
+  """Where P[i, j] (= P[j, i]) sits in the packed layout."""
+  return TRI_INDEX[(min(i, j), max(i, j))]
+
+
 N_PACKED = len(TRI) + 1   # the packed layout: the triangle and a zero (an odd length: ekf_lanes reads it per lane)
 P_LAYOUTS = {"square": N_ERR, "padded": N_PAD, "packed": N_PACKED}     # layout -> P's last dimension
 _TRI_ROW = np.array([i for i, _ in TRI] + [0])          # [121] row / column of each packed entry (the zero: 0, 0)
 _TRI_COL = np.array([j for _, j in TRI] + [0])
 _TRI_DIAG = np.array([i == j for i, j in TRI] + [False])
-_SQUARE_OF_PACKED = np.array([[TRI_INDEX[(min(i, j), max(i, j))] for j in range(N_ERR)] for i in range(N_ERR)])
+_SQUARE_OF_PACKED = np.array([[tri_index(i, j) for j in range(N_ERR)] for i in range(N_ERR)])
 
 
 def _clamps(n: int):
@@ -231,14 +238,14 @@ def in_layout(P15, layout: str):
   return jnp.pad(P15, [(0, 0)] * (P15.ndim - 2) + [(0, pad), (0, pad)]) if pad else P15
 
 
-def _layout_like(P15, P_ref):
+def layout_like(P15, P_ref):
   """P15 [15, 15] in the layout of P_ref."""
   return in_layout(P15, p_layout(P_ref))
 
 
 def p_entry(P, i: int, j: int):
   """P[i, j] of one vehicle's P in any layout (static indices: a slice)."""
-  return P[TRI_INDEX[(min(i, j), max(i, j))]] if p_layout(P) == "packed" else P[i, j]
+  return P[tri_index(i, j)] if p_layout(P) == "packed" else P[i, j]
 
 
 def p_diag(P):
@@ -354,7 +361,7 @@ def _predict_cov(cfg: EKFConfig, P, A, B, dt):
 def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
   s, A, B = _predict_nominal(cfg, s, gyro, accel, dt)
-  return s.replace(P=_layout_like(_predict_cov(cfg, as_square(s.P), A, B, dt), s.P))
+  return s.replace(P=layout_like(_predict_cov(cfg, as_square(s.P), A, B, dt), s.P))
 
 
 def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
@@ -548,7 +555,7 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
   P, dx, ratio, accept = rows(cfg, as_square(s.P), H, innov, R, gate, enable, stale)
-  return _inject(cfg, s.replace(P=_layout_like(P, s.P)), dx), innov, ratio, accept
+  return _inject(cfg, s.replace(P=layout_like(P, s.P)), dx), innov, ratio, accept
 
 
 # Timeout resets (EKF2: reset to the measurement after reset_timeout of rejected fusion), one per block of the error
@@ -605,7 +612,7 @@ def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
   P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, as_square(P), A, B, dt), H, innov, R, gate, enable, stale)
-  return _layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
+  return layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
 
 
 def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
@@ -657,11 +664,8 @@ def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
   """`_cov_tick` for one vehicle whose vmap runs `ekf_lanes.cov_tick` (one Mosaic GPU kernel for the whole batch,
   one vehicle per lane). P in any layout, returned in it; the kernel's own, "packed", passes through untouched."""
   from specguard_jax import ekf_lanes
-  Pk = P if p_layout(P) == "packed" else pack_p(as_square(P))
-  Pk, dx, ratio, accept = _cov_tick_batched(
-    cfg, Pk, A, B, dt, H, innov, enable, due, stale,
-    lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
-  return (Pk if p_layout(P) == "packed" else _layout_like(as_square(Pk), P)), dx, ratio, accept
+  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale,
+                           lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
 
 
 def reset_block(P, idx, var, do):

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from specguard_jax.ekf import N_ERR, N_PACKED, TRI, TRI_INDEX, as_square, pack_p, p_layout
+from specguard_jax.ekf import N_ERR, N_PACKED, TRI, TRI_INDEX, as_square, layout_like, pack_p, p_layout, tri_index
 
 N_ROWS = 13
 LANES = 128     # vehicles per program: one per thread of a warpgroup
@@ -64,7 +64,7 @@ class Layout:
 def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   """The per-lane covariance tick as straight-line code on [lanes] vectors (one vehicle per lane).
 
-  p_load(i, j) -> P[i, j]; p_store(i, j, v) sets P[i, j] and P[j, i] (i <= j); load(k) -> entry k of aux,
+  p_load(i, j) -> P[i, j] and p_store(i, j, v) sets P[i, j] and P[j, i], both for i <= j; load(k) -> entry k of aux,
   store(k, v) sets entry k of out (both as `Layout` places them); every value a [lanes] vector. Every load comes
   before the first store, so P and out may overwrite their inputs in place (the kernel's shared memory does).
   resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
@@ -79,7 +79,7 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
     for k in range(o.n_out):
       store(k, load(k) * 1.0)
     return
-  P = [[tri[TRI_INDEX[(min(i, j), max(i, j))]] for j in range(n)] for i in range(n)]
+  P = [[tri[tri_index(i, j)] for j in range(n)] for i in range(n)]
   A = [[load(o.A + 3 * i + m) for m in range(3)] for i in range(3)]
   B = [[load(o.B + 3 * i + m) for m in range(3)] for i in range(3)]
   dt = spec.dt
@@ -236,13 +236,13 @@ def _unpack_out(out, nb, spec):
 
 
 def _packed_io(fn):
-  """fn on P packed [B, 121] -> the same taking and returning P [B, 15, 15] or packed."""
+  """fn on P packed [B, 121] -> the same taking and returning P in any layout (ekf.P_LAYOUTS)."""
   @functools.wraps(fn)
   def wrapped(spec, resets, P, *args, **kw):
     if p_layout(P) == "packed":
       return fn(spec, resets, P, *args, **kw)
-    Pk, *rest = fn(spec, resets, pack_p(P), *args, **kw)
-    return (as_square(Pk), *rest)
+    Pk, *rest = fn(spec, resets, pack_p(as_square(P)), *args, **kw)
+    return (layout_like(as_square(Pk), P), *rest)
   return wrapped
 
 
@@ -256,8 +256,7 @@ def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "ful
   def p_store(i, j, v):
     p_out[TRI_INDEX[(i, j)]] = v
 
-  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store, lambda k: aux[k],
-            out.__setitem__, stage)
+  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux[k], out.__setitem__, stage)
   return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1),
           *_unpack_out(jnp.stack([out[k] for k in range(len(out))]), P.shape[0], spec))
 
@@ -272,8 +271,8 @@ IN_PLACE = JAX_VERSION >= (0, 11)
 def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", in_place: bool = IN_PLACE):
   """The tick's covariance work for a batch of B vehicles as one Mosaic GPU kernel (NVIDIA Hopper or newer).
 
-  P: [B, 121] packed (`ekf.pack_p`, the env's layout with this kernel), returned packed; or [B, 15, 15] symmetric,
-  returned so (packed and unpacked around the kernel). The covariance before the prediction.
+  P: [B, 121] packed (`ekf.pack_p`, the env's layout with this kernel), returned packed; or P in another layout
+  (ekf.P_LAYOUTS), returned in it (packed and unpacked around the kernel). The covariance before the prediction.
   A, B: [B, 3, 3] F's blocks (`ekf._predict_nominal`). H: [B, 13, 15] observation Jacobian (its entries on
   `spec.h_entries()` are read). innov: [B, 13]. enable: [B, 13] bool. due: [B, 3] bool, the timeout resets due
   (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`. Returns (P, dx [B, 15], ratio [B, 13],
@@ -327,8 +326,7 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
     def store(k, v):
       aux_smem[k] = v
 
-    tick_body(spec, resets, lambda i, j: p_vm[:, TRI_INDEX[(min(i, j), max(i, j))]], p_store,
-              lambda k: aux_smem[k], store, stage)
+    tick_body(spec, resets, lambda i, j: p_vm[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux_smem[k], store, stage)
     plgpu.commit_smem()
     plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
     plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(0, lay.n_out)], out_gmem.at[:, blk])

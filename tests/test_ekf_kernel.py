@@ -177,6 +177,18 @@ def test_shadow_filter_with_the_kernel_follows_the_xla_shadow():
   np.testing.assert_array_equal(np.asarray(out.shadow.accepted), np.asarray(ref.shadow.accepted))
 
 
+def _rollouts(ref_env, env, steps: int):
+  """Both envs' (reset states, stacked step states) over `steps` zero-action steps of the same 3 vehicles, jitted."""
+  keys = jax.random.split(jax.random.PRNGKey(3), 3)
+
+  def rollout(e):
+    s0 = jax.vmap(e.reset)(keys)
+    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
+    return s0, jax.lax.scan(step, s0, None, length=steps)[1]
+
+  return jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+
+
 def test_phase2_env_with_the_kernel_follows_the_xla_env():
   """The whole phase-2 env (autopilot EKF and the reconstruction's shadow on the kernel, interpreted on the CPU; P in
   the padded layout from reset on) against the XLA env: 8 closed-loop steps (40 ticks) of 3 vehicles."""
@@ -184,14 +196,7 @@ def test_phase2_env_with_the_kernel_follows_the_xla_env():
   kw = dict(control_mode="reactive", detector="residual", reconstruction=True)
   ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
   env._fused_ekf = env._fused_shadow = "interpret"
-  keys = jax.random.split(jax.random.PRNGKey(3), 3)
-
-  def rollout(e):
-    s0 = jax.vmap(e.reset)(keys)
-    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
-    return s0, jax.lax.scan(step, s0, None, length=8)[1]
-
-  (s0_ref, ref), (s0, out) = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+  (s0_ref, ref), (s0, out) = _rollouts(ref_env, env, 8)
   sim = s0.info["sim"]
   assert sim["ekf"].P.shape == (3, 16, 16) and sim["recon"].shadow.P.shape == (3, 16, 16)
   assert s0_ref.info["sim"]["ekf"].P.shape == (3, 15, 15)

@@ -10,7 +10,7 @@ import pytest
 
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import ekf_lanes
-from test_ekf_kernel import DT, _batch, _check, _xla
+from test_ekf_kernel import DT, _batch, _check, _rollouts, _xla
 
 
 def _cfg(vehicle):
@@ -48,8 +48,8 @@ def test_kernel_lowers_for_cuda(vehicle):
 
 
 def test_kernel_takes_and_returns_either_layout_of_P():
-  """cov_tick's P packed [B, 121] (the env's layout with this kernel) or square [B, 15, 15], returned in the same
-  layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`). Mosaic GPU's CPU
+  """cov_tick's P packed [B, 121] (the env's layout with this kernel), square [B, 15, 15] or padded [B, 16, 16],
+  returned in the same layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`). Mosaic GPU's CPU
   interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on the GPU only
   (`test_kernel_on_gpu_equals_xla_tick`, bench/ekf_lanes.py)."""
   cfg = _cfg("rover")
@@ -62,6 +62,9 @@ def test_kernel_takes_and_returns_either_layout_of_P():
   np.testing.assert_array_equal(np.asarray(packed[0][:, -1]), 0.0)
   for x, y in zip(square[1:], packed[1:]):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  padded = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), ekf_lib.in_layout(args[0], "padded"), *args[1:])
+  assert padded[0].shape == (40, 16, 16) and not np.any(np.asarray(padded[0])[:, 15])
+  np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(padded[0])), np.asarray(square[0]))
 
 
 def test_packed_layout_helpers_equal_the_square_ones():
@@ -163,14 +166,7 @@ def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
   import envs
   ref_env, env = envs.make("drone"), envs.make("drone")
   env._fused_ekf = env._fused_shadow = "lanes"     # (envs.make(fused_ekf="lanes") would need a Hopper GPU)
-  keys = jax.random.split(jax.random.PRNGKey(3), 3)
-
-  def rollout(e):
-    s0 = jax.vmap(e.reset)(keys)
-    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
-    return jax.lax.scan(step, s0, None, length=6)[1]
-
-  ref, out = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+  (_, ref), (_, out) = _rollouts(ref_env, env, 6)
   assert lanes_on_cpu and all(shape == (3, ekf_lib.N_PACKED) for shape in lanes_on_cpu)
   assert out.info["sim"]["ekf"].P.shape == (6, 3, ekf_lib.N_PACKED)
   np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-4, atol=1e-4)
@@ -187,14 +183,7 @@ def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
   ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
   env._fused_ekf = env._fused_shadow = "lanes"
   lanes_on_cpu.cfgs.append(env.recon_cfg.ekf_cfg())
-  keys = jax.random.split(jax.random.PRNGKey(3), 3)
-
-  def rollout(e):
-    s0 = jax.vmap(e.reset)(keys)
-    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
-    return s0, jax.lax.scan(step, s0, None, length=8)[1]
-
-  (s0_ref, ref), (s0, out) = jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+  (_, ref), (s0, out) = _rollouts(ref_env, env, 8)
   sim = s0.info["sim"]
   assert sim["ekf"].P.shape == (3, ekf_lib.N_PACKED) and sim["recon"].shadow.P.shape == (3, ekf_lib.N_PACKED)
   assert len(lanes_on_cpu) == 2     # the autopilot's and the shadow's EKF (on the CPU every tick is the full one)
