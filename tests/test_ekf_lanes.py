@@ -49,9 +49,9 @@ def test_kernel_lowers_for_cuda(vehicle):
 
 def test_kernel_takes_and_returns_either_layout_of_P():
   """cov_tick's P packed [B, 121] (the env's layout with this kernel), square [B, 15, 15] or padded [B, 16, 16],
-  returned in the same layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`). Mosaic GPU's CPU
-  interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on the GPU only
-  (`test_kernel_on_gpu_equals_xla_tick`, bench/ekf_lanes.py)."""
+  returned in the same layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`).
+  Mosaic GPU's CPU interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on
+  the GPU only (`test_kernel_on_gpu_equals_xla_tick`, bench/ekf_lanes.py)."""
   cfg = _cfg("rover")
   args = _batch(cfg, 40, seed=2)
   spec = ekf_lib._cov_spec(cfg, DT, ())
