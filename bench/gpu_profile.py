@@ -235,7 +235,7 @@ def main(argv=None):
                   help="also list the GPU's idle gaps by the kernels around them (use with --keep-command-buffers "
                        "to see a normal run's idle time)")
   ap.add_argument("--json", help="write the figures here")
-  ap.add_argument("--hlo-out", help="training call: also write its optimised HLO text here (to look up a kernel's "
+  ap.add_argument("--hlo-out", help="training call or --env-step: also write its optimised HLO text here (to look up a kernel's "
                                     "shapes and operands by its hlo op name)")
   a = ap.parse_args(argv)
   if not a.keep_command_buffers:
@@ -274,7 +274,11 @@ def main(argv=None):
                            f"nan_fallback={not a.no_nan_fallback}")
     fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
     label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
-    res = profile(fn.lower(*args).compile(), args, label, a.top, runs=2, show=a.show, gaps=a.gaps)
+    compiled = fn.lower(*args).compile()
+    if a.hlo_out:
+      with open(a.hlo_out, "w") as f:
+        f.write(compiled.as_text())
+    res = profile(compiled, args, label, a.top, runs=2, show=a.show, gaps=a.gaps)
   else:
     from specguard_jax.ppo import attacker, config, distributed, iteration, losses, runner
     base = runner.default_sizes("gpu")
