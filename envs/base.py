@@ -399,16 +399,22 @@ class RAVEnv(Env):
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
     (phys, sim), tick_pos = self._tick_loop(tick, (state.pipeline_state, sim0), keys)
-    # Collision: the obstacle distance at every tick's true position [ticks_per_step, 3], after the tick loop (one pass
-    # over the world's obstacles for all ticks instead of one per tick, which had cost ~5 % of a step on the GPU).
-    with jax.named_scope("collision"):
-      d_obs = jax.vmap(lambda p: worlds_lib.obstacle_sdf(world, self._query_pos(p)))(tick_pos)
-      min_obs = jnp.minimum(jnp.min(d_obs), 1e3)
-
     truth, nav = sim["truth"], sim["nav"]
     finite = jnp.all(jnp.isfinite(phys.qpos)) & jnp.all(jnp.isfinite(phys.qvel))
+    # The observation's position (an estimate; nan_fallback: the previous step's where the physics is not finite).
+    est_pos = self._estimated_position(sim)
+    if self.config.nan_fallback:
+      est_pos = jnp.where(finite, est_pos, self._estimated_position(sim0))
+    # The step's obstacle queries in one pass over the world's obstacles (worlds.obstacle_queries): the distance at
+    # every tick's true position [ticks_per_step] (collision; the last tick's is the signals' obstacle distance) and
+    # the nearest obstacle's distance and direction at the estimate (the observation).
+    with jax.named_scope("collision"):
+      d_obs, d_est, g_est = worlds_lib.obstacle_queries(world, jax.vmap(self._query_pos)(tick_pos),
+                                                        self._query_pos(est_pos))
+      min_obs = jnp.minimum(jnp.min(d_obs), 1e3)
+
     # NaN physics never leaves the env: the signals (STL monitor, episode record) fall back to the previous step's.
-    signals = tree_where(finite, self._signals(world, mission, truth, nav), info["signals"])
+    signals = tree_where(finite, self._signals(world, mission, truth, nav, obstacle=d_obs[-1]), info["signals"])
     min_obs = jnp.where(finite, min_obs, 1e3)
     ep = dict(info["episode"])
     t = info["time"] + self.dt
@@ -445,7 +451,7 @@ class RAVEnv(Env):
     if self.config.nan_fallback:
       phys = tree_where(finite, phys, state.pipeline_state)
       sim = tree_where(finite, sim, sim0)
-    obs = self._observation(world, mission, sim)
+    obs = self._observation(world, mission, sim, obstacle=(d_est, g_est))
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
     with jax.named_scope("stl_reward"):
@@ -571,13 +577,14 @@ class RAVEnv(Env):
     """Position used for world queries (rovers query at ground level)."""
     return pos
 
-  def _signals(self, world, mission, truth: TrueState, nav) -> dict:
-    """The monitored signals of specguard_jax/signals.py from the TRUE state. dict name -> [] float32."""
+  def _signals(self, world, mission, truth: TrueState, nav, obstacle=None) -> dict:
+    """The monitored signals of specguard_jax/signals.py from the TRUE state. dict name -> [] float32.
+    obstacle: the obstacle distance at the true position if already at hand (worlds.world_queries)."""
     pos = self._query_pos(truth.pos)
     phase = nav.phase
     landing = ((phase == nav_lib.DESCENT) | (phase == nav_lib.DONE)) & (mission.land > 0)
     # While landing the leg is last waypoint -> landing point (envs.missions.mission_leg, target >= n).
-    q = worlds_lib.world_queries(world, mission, pos, jnp.where(landing, mission.n_waypoints, nav.target))
+    q = worlds_lib.world_queries(world, mission, pos, jnp.where(landing, mission.n_waypoints, nav.target), obstacle)
     vel = truth.vel
     speed_xy = math3d.norm(vel[:2])
     alt = truth.pos[2] - self._ground_offset()
@@ -616,11 +623,16 @@ class RAVEnv(Env):
     goal = jnp.where(nav.phase == nav_lib.DESCENT, math3d.with_component(wp, 2, 0.0), goal)
     return math3d.norm(self._query_pos(goal) - self._query_pos(truth.pos))
 
-  def _observation(self, world, mission, sim) -> jax.Array:
+  def _estimated_position(self, sim) -> jax.Array:
+    """[3] the position the observation is built from: the EKF's, or the reconstructed one (phase 2), m."""
+    return sim["x_rec"][0:3] if self.config.reconstruction else sim["ekf"].pos
+
+  def _observation(self, world, mission, sim, obstacle=None) -> jax.Array:
     """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
     target waypoint, velocity, acceleration, Euler angles) + mission context: direction of the next leg [3],
     unit direction to the nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude,
-    horizontal speed, waypoint slack (s)."""
+    horizontal speed, waypoint slack (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated
+    position if already at hand (worlds.obstacle_queries), else computed here."""
     ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
     if self.config.reconstruction:   # x'_t as reconstructed (equals the EKF's while the alarm is down)
       x = sim["x_rec"]
@@ -634,8 +646,8 @@ class RAVEnv(Env):
     leg_next = nxt - target
     leg_next = leg_next / (math3d.norm(leg_next) + 1e-6)
     qpos = self._query_pos(pos)
-    d_obs, g_obs = worlds_lib.obstacle_sdf_and_grad(world, qpos)
-    q = worlds_lib.world_queries(world, mission, qpos, nav.target)
+    d_obs, g_obs = worlds_lib.obstacle_sdf_and_grad(world, qpos) if obstacle is None else obstacle
+    q = worlds_lib.world_queries(world, mission, qpos, nav.target, d_obs)
     obs = jnp.concatenate([
         pos - target, vel, acc, euler, leg_next, -g_obs,
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],

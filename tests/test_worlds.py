@@ -279,3 +279,43 @@ def test_obstacle_sdf_and_grad_equals_autodiff_of_the_sdf(drone_batches):
       np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-5, atol=1e-6)
       checked += int(np.sum(np.asarray(d) < 1e3))
   assert checked > 300
+
+
+def test_obstacle_queries_equal_the_separate_queries(drone_batches):
+  """The env step's one-pass obstacle queries equal obstacle_sdf at every point and obstacle_sdf_and_grad at the
+  estimate (3 presets x 4 worlds, 5 points + 1 estimate around the obstacles per env, one world with every
+  obstacle masked off), to float32 rounding; and a tie between two slots takes the first's gradient, as argmin."""
+  rng = np.random.default_rng(1)
+  fn = jax.jit(jax.vmap(W.obstacle_queries, (None, 0, 0)))
+  ref = jax.jit(jax.vmap(lambda w, pts, p: (jax.vmap(W.obstacle_sdf, (None, 0))(w, pts), *W.obstacle_sdf_and_grad(w, p)),
+                         (None, 0, 0)))
+  near = 0
+  for name in ("urban_city_areas", "urban_high_rise", "manufacturing_plant"):
+    worlds = drone_batches[name][1]
+    for k in range(4):
+      w = jax.tree.map(lambda x: x[k], worlds)
+      if k == 3:
+        w = w.replace(cylinder_mask=np.zeros_like(w.cylinder_mask), box_mask=np.zeros_like(w.box_mask))
+      centres = np.concatenate([np.asarray(w.cylinders)[:, :2], np.asarray(w.boxes)[:, :2]])
+      xy = centres[rng.integers(0, len(centres), (32, 6))] + rng.normal(0.0, 8.0, (32, 6, 2))
+      pts = np.concatenate([xy, rng.uniform(0.0, 60.0, (32, 6, 1))], 2).astype(np.float32)
+      got, want = fn(w, pts[:, :5], pts[:, 5]), ref(w, pts[:, :5], pts[:, 5])
+      for g, r in zip(got, want):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-5, atol=1e-5)
+      near += int(np.sum(np.asarray(got[1]) < 1e3))
+      if k == 3:
+        assert np.all(np.asarray(got[0]) == 1e3) and np.all(np.asarray(got[2]) == 0.0)
+  assert near > 200
+  # two cylinders exactly as near (on either side of the point): the first slot's gradient, as argmin picks it; a
+  # NaN point's distance is NaN, as obstacle_sdf's
+  w = jax.tree.map(lambda x: x[0], drone_batches["urban_city_areas"][1])
+  for first in (0, 1):
+    cyl = np.asarray(w.cylinders).copy()
+    cyl[first], cyl[1 - first] = [0.0, 0.0, 1.0, 10.0], [6.0, 0.0, 1.0, 10.0]
+    mask = np.zeros_like(w.cylinder_mask)
+    mask[:2] = True
+    wt = w.replace(cylinders=cyl, cylinder_mask=mask, box_mask=np.zeros_like(w.box_mask))
+    p = np.array([3.0, 0.0, 1.0], np.float32)
+    d_pts, d, g = W.obstacle_queries(wt, np.stack([p, np.full(3, np.nan, np.float32)]), p)
+    np.testing.assert_allclose([d, *g], [2.0, 1.0 if first == 0 else -1.0, 0.0, 0.0], atol=1e-6)
+    assert float(d_pts[0]) == 2.0 and np.isnan(d_pts[1])
