@@ -12,9 +12,8 @@ tick and the Triton tile kernel `ekf_kernel.py` pay for). P lives in registers d
 Memory layout: P batch-major as the env holds it, no transposes: packed ([B, 121]: its upper triangle and a zero,
 `ekf.pack_p`; the env keeps P so with this kernel, `ekf_init(p_layout="packed")`); each program copies its 128
 vehicles' contiguous rows into shared memory with one TMA copy and each lane reads its own vehicle's entries at an
-odd stride (conflict-free); P written back in place. The other inputs vehicle-minor ([k, B] blocks, `aux_parts`,
-each written by the XLA fusion that computes it, one TMA copy each into the rows of one shared-memory block), the
-outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
+odd stride (conflict-free); P written back in place. The other inputs vehicle-minor ([n_aux, B], `pack_aux`, one
+fusion of XLA's), the outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
 vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
 
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
@@ -218,22 +217,15 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
     store(o.acc + i, jnp.where(accept[i], 1.0, 0.0))
 
 
-def aux_parts(spec, A, B, H, innov, enable, due):
-  """The tick's per-vehicle inputs besides P, vehicle-minor, as the kernel reads them: a list of float32 [k, B] blocks
-  (A [9], B [9], H's entries on `spec.h_entries()` [n_h], innov [13], enable [13], due [3]), in `Layout` row order.
-  Separate arrays, not one concatenation: XLA writes each from the fusion that computes it (its natural layout is
-  vehicle-minor), where one [n_aux, B] block took a concatenate kernel of its own each tick (22 us per drone tick at
-  65,536 vehicles, session 37)."""
-  nb = A.shape[0]
-  f32 = jnp.float32
-  hd = jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=0)
-  return [A.reshape(nb, 9).T.astype(f32), B.reshape(nb, 9).T.astype(f32), hd.astype(f32), innov.T.astype(f32),
-          enable.T.astype(f32), due.T.astype(f32)]
-
-
 def pack_aux(spec, A, B, H, innov, enable, due):
-  """`aux_parts` as one block aux [n_aux, B] float32, rows as `Layout` places them."""
-  return jnp.concatenate(aux_parts(spec, A, B, H, innov, enable, due), axis=0)
+  """The tick's per-vehicle inputs besides P, vehicle-minor: aux [n_aux, B] float32, rows as `Layout` places them
+  (XLA writes it in one fusion, reading each input coalesced; batch-major [B, n_aux] it reads them ~32 arrays per
+  warp: 70 us per drone tick at 65,536 vehicles, session 36)."""
+  nb = A.shape[0]
+  hd = jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1)
+  aux = jnp.concatenate([A.reshape(nb, 9), B.reshape(nb, 9), hd, innov, enable.astype(jnp.float32),
+                         due.astype(jnp.float32)], axis=1)
+  return aux.astype(jnp.float32).T
 
 
 def _unpack_out(out, nb, spec):
@@ -289,9 +281,8 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", 
   Layout: P batch-major as the env holds it, no transposes: [B, 121] row-major viewed as [B 121 / 128, 128], so
   program b's 128 vehicles are the rows 121 b + [0, 121), one TMA copy into shared memory, where lane v reads its
   vehicle's entry k at word 121 v + k (121 is odd: the 32 lanes of a warp hit 32 banks); written back in place and
-  copied out the same way. The other inputs vehicle-minor (`aux_parts`, [k, B] blocks: program b's columns, row k a
-  [128] vector, copied into their `Layout` rows of one [n_aux, 128] block), the outputs written over them and copied
-  out to [n_out, B]. 98 KB per program, two per SM.
+  copied out the same way. The other inputs vehicle-minor (`pack_aux`, [n_aux, B]: program b's columns, row k a
+  [128] vector), the outputs written over them and copied out to [n_out, B]. 98 KB per program, two per SM.
   in_place: P's output is its input's buffer (a jax Ref; default on jax >= 0.11), else a new array (XLA then copies
   it into the loop's carry: ~16 us per tick at 65,536 vehicles)."""
   @jax.custom_batching.custom_vmap
@@ -316,24 +307,18 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
   lay = Layout(spec)
   f32 = jnp.float32
   Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
-  parts = [jnp.pad(x, ((0, 0), (0, bp - nb))) for x in aux_parts(spec, A, B, H, innov, enable, due)]
-  rows = np.cumsum([0] + [x.shape[0] for x in parts])
-  n_in = len(parts)
+  aux = jnp.pad(pack_aux(spec, A, B, H, innov, enable, due), ((0, 0), (0, bp - nb)))
 
-  def kernel(p_gmem, *refs):
-    aux_gmem, refs = refs[:n_in], refs[n_in:]
-    *po_gmem, out_gmem, p_smem, aux_smem, p_bar = refs[:-n_in]
-    aux_bars = refs[-n_in:]
+  def kernel(p_gmem, aux_gmem, *refs):
+    *po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar = refs
     po_gmem = po_gmem[0] if po_gmem else p_gmem      # in place: P's ref is the output
     b = jax.lax.axis_index("b")
     blk = pl.ds(b * LANES, LANES)
     plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(b * N_PACKED, N_PACKED)], p_smem, p_bar)
-    for g, bar, r0, r1 in zip(aux_gmem, aux_bars, rows[:-1], rows[1:]):   # each input into its rows of aux_smem
-      plgpu.copy_gmem_to_smem(g.at[:, blk], aux_smem.at[pl.ds(int(r0), int(r1 - r0))], bar)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
     p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] view
     plgpu.barrier_wait(p_bar)
-    for bar in aux_bars:
-      plgpu.barrier_wait(bar)
+    plgpu.barrier_wait(aux_bar)
 
     def p_store(i, j, v):
       p_vm[:, TRI_INDEX[(i, j)]] = v
@@ -352,14 +337,14 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
     kernel, out_type=out_type if in_place else (jax.ShapeDtypeStruct(Pg.shape, f32), out_type),
     grid=(bp // LANES,), grid_names=("b",),
     scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32),
-                   plgpu.Barrier(num_arrivals=1)] + [plgpu.Barrier(num_arrivals=1)] * n_in,
+                   plgpu.Barrier(num_arrivals=1), plgpu.Barrier(num_arrivals=1)],
     compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane))
   if in_place:    # P's buffer written in place (the custom call aliases it: no copy of P after the kernel)
     p_ref = jax.new_ref(Pg)
-    out = call(p_ref, *parts)
+    out = call(p_ref, aux)
     Po = jax.freeze(p_ref)
   else:
-    Po, out = call(Pg, *parts)
+    Po, out = call(Pg, aux)
   return (Po.reshape(bp, N_PACKED)[:nb], *_unpack_out(out, nb, spec))
 
 
