@@ -235,8 +235,8 @@ def main(argv=None):
                   help="also list the GPU's idle gaps by the kernels around them (use with --keep-command-buffers "
                        "to see a normal run's idle time)")
   ap.add_argument("--json", help="write the figures here")
-  ap.add_argument("--hlo-out", help="training call or --env-step: also write its optimised HLO text here (to look up a kernel's "
-                                    "shapes and operands by its hlo op name)")
+  ap.add_argument("--hlo-out", help="training call or --env-step: also write its optimised HLO text here (to look "
+                                    "up a kernel's shapes and operands by its hlo op name)")
   a = ap.parse_args(argv)
   if not a.keep_command_buffers:
     os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="

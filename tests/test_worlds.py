@@ -254,6 +254,20 @@ def test_world_queries_vmap_and_grad():
   np.testing.assert_allclose(g, [0.0, 1.0, 0.0], atol=1e-5)
 
 
+def _worlds_and_points_near_obstacles(drone_batches, rng, shape):
+  """(world, points [*shape, 3] around its obstacles: inside, outside, above) for 3 presets x 4 worlds; the fourth of
+  each preset with every obstacle masked off."""
+  for name in ("urban_city_areas", "urban_high_rise", "manufacturing_plant"):
+    worlds = drone_batches[name][1]
+    for k in range(4):
+      w = jax.tree.map(lambda x: x[k], worlds)
+      if k == 3:
+        w = w.replace(cylinder_mask=np.zeros_like(w.cylinder_mask), box_mask=np.zeros_like(w.box_mask))
+      centres = np.concatenate([np.asarray(w.cylinders)[:, :2], np.asarray(w.boxes)[:, :2]])
+      xy = centres[rng.integers(0, len(centres), shape)] + rng.normal(0.0, 8.0, shape + (2,))
+      yield k, w, np.concatenate([xy, rng.uniform(0.0, 60.0, shape + (1,))], -1).astype(np.float32)
+
+
 def test_obstacle_sdf_and_grad_equals_autodiff_of_the_sdf(drone_batches):
   """The env's observation of the nearest obstacle (distance and direction) from one reverse pass over the nearest
   obstacle equals jax.value_and_grad of obstacle_sdf over all of them: 3 presets x 4 worlds x 64 points around the
@@ -265,19 +279,11 @@ def test_obstacle_sdf_and_grad_equals_autodiff_of_the_sdf(drone_batches):
   ref_fn = jax.vmap(jax.value_and_grad(W.obstacle_sdf, argnums=1), (None, 0))
   fn = jax.jit(jax.vmap(W.obstacle_sdf_and_grad, (None, 0)))
   checked = 0
-  for name in ("urban_city_areas", "urban_high_rise", "manufacturing_plant"):
-    worlds = drone_batches[name][1]
-    for k in range(4):
-      w = jax.tree.map(lambda x: x[k], worlds)
-      if k == 3:
-        w = w.replace(cylinder_mask=np.zeros_like(w.cylinder_mask), box_mask=np.zeros_like(w.box_mask))
-      centres = np.concatenate([np.asarray(w.cylinders)[:, :2], np.asarray(w.boxes)[:, :2]])
-      p = centres[rng.integers(0, len(centres), 64)] + rng.normal(0.0, 8.0, (64, 2))
-      p = np.concatenate([p, rng.uniform(0.0, 60.0, (64, 1))], 1).astype(np.float32)
-      (d_ref, g_ref), (d, g) = ref_fn(w, p), fn(w, p)
-      np.testing.assert_allclose(np.asarray(d), np.asarray(d_ref), rtol=1e-6, atol=2e-6)
-      np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-5, atol=1e-6)
-      checked += int(np.sum(np.asarray(d) < 1e3))
+  for _, w, p in _worlds_and_points_near_obstacles(drone_batches, rng, (64,)):
+    (d_ref, g_ref), (d, g) = ref_fn(w, p), fn(w, p)
+    np.testing.assert_allclose(np.asarray(d), np.asarray(d_ref), rtol=1e-6, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-5, atol=1e-6)
+    checked += int(np.sum(np.asarray(d) < 1e3))
   assert checked > 300
 
 
@@ -287,24 +293,18 @@ def test_obstacle_queries_equal_the_separate_queries(drone_batches):
   obstacle masked off), to float32 rounding; and a tie between two slots takes the first's gradient, as argmin."""
   rng = np.random.default_rng(1)
   fn = jax.jit(jax.vmap(W.obstacle_queries, (None, 0, 0)))
-  ref = jax.jit(jax.vmap(lambda w, pts, p: (jax.vmap(W.obstacle_sdf, (None, 0))(w, pts), *W.obstacle_sdf_and_grad(w, p)),
-                         (None, 0, 0)))
+  def separate(w, pts, p):
+    return (jax.vmap(W.obstacle_sdf, (None, 0))(w, pts), *W.obstacle_sdf_and_grad(w, p))
+
+  ref = jax.jit(jax.vmap(separate, (None, 0, 0)))
   near = 0
-  for name in ("urban_city_areas", "urban_high_rise", "manufacturing_plant"):
-    worlds = drone_batches[name][1]
-    for k in range(4):
-      w = jax.tree.map(lambda x: x[k], worlds)
-      if k == 3:
-        w = w.replace(cylinder_mask=np.zeros_like(w.cylinder_mask), box_mask=np.zeros_like(w.box_mask))
-      centres = np.concatenate([np.asarray(w.cylinders)[:, :2], np.asarray(w.boxes)[:, :2]])
-      xy = centres[rng.integers(0, len(centres), (32, 6))] + rng.normal(0.0, 8.0, (32, 6, 2))
-      pts = np.concatenate([xy, rng.uniform(0.0, 60.0, (32, 6, 1))], 2).astype(np.float32)
-      got, want = fn(w, pts[:, :5], pts[:, 5]), ref(w, pts[:, :5], pts[:, 5])
-      for g, r in zip(got, want):
-        np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-5, atol=1e-5)
-      near += int(np.sum(np.asarray(got[1]) < 1e3))
-      if k == 3:
-        assert np.all(np.asarray(got[0]) == 1e3) and np.all(np.asarray(got[2]) == 0.0)
+  for k, w, pts in _worlds_and_points_near_obstacles(drone_batches, rng, (32, 6)):
+    got, want = fn(w, pts[:, :5], pts[:, 5]), ref(w, pts[:, :5], pts[:, 5])
+    for g, r in zip(got, want):
+      np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-5, atol=1e-5)
+    near += int(np.sum(np.asarray(got[1]) < 1e3))
+    if k == 3:
+      assert np.all(np.asarray(got[0]) == 1e3) and np.all(np.asarray(got[2]) == 0.0)
   assert near > 200
   # two cylinders exactly as near (on either side of the point): the first slot's gradient, as argmin picks it; a
   # NaN point's distance is NaN, as obstacle_sdf's
