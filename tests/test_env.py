@@ -180,6 +180,28 @@ def test_collision_terminates(drone_reset, drone_step):
   assert float(s2.info["signals"]["obstacle_distance"]) < 0
 
 
+def test_step_obstacle_queries_land_where_the_separate_queries_would(drone_reset, drone_step):
+  """The step's one-pass obstacle queries (worlds.obstacle_queries) feed each consumer its own point: the signals'
+  obstacle distance is the SDF at the final true position, the observation's distance and direction are those at the
+  EKF's estimate, and the episode's minimum covers the step's ticks (<= the final tick's distance)."""
+  from envs import worlds
+  s = drone_reset(jax.random.PRNGKey(5))
+  w = s.info["world"]
+  home = s.info["mission"].home
+  cyl = w.cylinders.at[0].set(jnp.array([home[0] + 6.0, home[1] + 1.0, 1.0, 40.0]))
+  s = s.replace(info=dict(s.info, world=w.replace(cylinders=cyl, cylinder_mask=w.cylinder_mask.at[0].set(True))))
+  world = s.info["world"]
+  for _ in range(3):
+    s = drone_step(s, jnp.zeros(3))
+    truth, est = s.info["sim"]["truth"].pos, s.info["sim"]["ekf"].pos
+    d_true = float(worlds.obstacle_sdf(world, truth))
+    assert d_true < 10.0      # the planted cylinder is the nearest obstacle, within the signals' cap
+    assert float(s.info["signals"]["obstacle_distance"]) == pytest.approx(d_true, abs=1e-5)
+    d_est, g_est = worlds.obstacle_sdf_and_grad(world, est)
+    np.testing.assert_allclose(np.asarray(s.obs[15:19]), np.append(-np.asarray(g_est), float(d_est)), atol=1e-5)
+    assert float(s.info["episode"]["min_obstacle_distance"]) <= d_true + 1e-5
+
+
 def test_nan_physics_never_leaks(drone_reset, drone_step):
   """A NaN thrust gain blows up the physics: the step ends the episode, flags it, zero reward, finite obs/state."""
   s = drone_reset(jax.random.PRNGKey(4))
