@@ -634,11 +634,12 @@ class RAVEnv(Env):
     horizontal speed, waypoint slack (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated
     position if already at hand (worlds.obstacle_queries), else computed here."""
     ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
+    pos = self._estimated_position(sim)
     if self.config.reconstruction:   # x'_t as reconstructed (equals the EKF's while the alarm is down)
       x = sim["x_rec"]
-      pos, vel, acc, euler = x[0:3], x[3:6], x[6:9], x[9:12]
+      vel, acc, euler = x[3:6], x[6:9], x[9:12]
     else:
-      pos, vel, euler = ekf.pos, ekf.vel, ekf_lib.ekf_euler(ekf)
+      vel, euler = ekf.vel, ekf_lib.ekf_euler(ekf)
       acc = math3d.matvec(math3d.quat_to_rot(ekf.quat), readings.accel - ekf.accel_bias) + jnp.array([0.0, 0.0, -9.81])
     wp = mission.waypoints
     target = wp[nav.target]

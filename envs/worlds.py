@@ -452,14 +452,8 @@ def obstacle_sdf_and_grad(world: World, pos: jnp.ndarray):
   of them (what jax.value_and_grad(obstacle_sdf) does: ~2x the forward's work per env, session 36). Equal to it
   except where two obstacles are exactly equally near (there it averages their gradients, this takes one), and
   where XLA recomputes the min in the reverse pass with another rounding (no obstacle equals it there: the autodiff
-  gradient is 0, seen jitted on the CPU; an argmin cannot miss)."""
-  dc = jnp.where(world.cylinder_mask, jax.vmap(geo.sdf_cylinder, (None, 0))(pos, world.cylinders), geo.FAR)
-  db = jnp.where(world.box_mask, jax.vmap(geo.sdf_box, (None, 0))(pos, world.boxes), geo.FAR)
-  ic, ib = jnp.argmin(dc), jnp.argmin(db)
-  d = jnp.minimum(jnp.minimum(dc[ic], db[ib]), geo.FAR)
-  gc = jax.grad(geo.sdf_cylinder)(pos, world.cylinders[ic])
-  gb = jax.grad(geo.sdf_box)(pos, world.boxes[ib])
-  g = jnp.where(dc[ic] <= db[ib], jnp.where(world.cylinder_mask[ic], gc, 0.0), jnp.where(world.box_mask[ib], gb, 0.0))
+  gradient is 0, seen jitted on the CPU; an argmin cannot miss). `obstacle_queries` with no other points."""
+  _, d, g = obstacle_queries(world, jnp.zeros((0, 3), jnp.float32), pos)
   return d, g
 
 
@@ -476,7 +470,7 @@ def _first_nearest(a, b):
 
 def obstacle_queries(world: World, points: jnp.ndarray, pos: jnp.ndarray):
   """The env step's obstacle queries with one pass over the world's obstacle slots: (obstacle_sdf at each of points
-  [K, 3] -> [K], obstacle_sdf_and_grad at pos [3] -> ([], [3])), the same values as those functions give. Each kind's
+  [K, 3] -> [K] (K >= 0), the distance and SDF gradient at pos [3] -> ([], [3]), `obstacle_sdf_and_grad`). Each kind's
   slots go through one variadic reduction (every point's distance and the nearest slot's distance and index at pos),
   then the nearest slot's gradient alone, so XLA reads the world's ~1.3 KB per env once, where the three queries
   (collision at the step's ticks, the signals at the last one, the observation at the estimate) read it three times
@@ -493,7 +487,7 @@ def obstacle_queries(world: World, points: jnp.ndarray, pos: jnp.ndarray):
     out = jax.lax.reduce(ops, init, _first_nearest, (0,))
     i = out[k + 1]
     g = jnp.where(mask[i], jax.grad(sdf)(pos, slots[i]), 0.0)
-    return jnp.stack(out[:k]), out[k], g
+    return jnp.stack(out[:k]) if k else jnp.zeros((0,), jnp.float32), out[k], g
 
   pc, dc, gc = nearest(geo.sdf_cylinder, world.cylinders, world.cylinder_mask)
   pb, db, gb = nearest(geo.sdf_box, world.boxes, world.box_mask)

@@ -288,15 +288,18 @@ def test_obstacle_sdf_and_grad_equals_autodiff_of_the_sdf(drone_batches):
 
 
 def test_obstacle_queries_equal_the_separate_queries(drone_batches):
-  """The env step's one-pass obstacle queries equal obstacle_sdf at every point and obstacle_sdf_and_grad at the
-  estimate (3 presets x 4 worlds, 5 points + 1 estimate around the obstacles per env, one world with every
-  obstacle masked off), to float32 rounding; and a tie between two slots takes the first's gradient, as argmin."""
+  """The env step's one-pass obstacle queries equal obstacle_sdf at every point and jax.value_and_grad of it at the
+  estimate (eager, as above; 3 presets x 4 worlds, 5 points + 1 estimate around the obstacles per env, one world
+  with every obstacle masked off), to float32 rounding; and a tie between two slots takes the first's gradient, as
+  argmin."""
   rng = np.random.default_rng(1)
   fn = jax.jit(jax.vmap(W.obstacle_queries, (None, 0, 0)))
-  def separate(w, pts, p):
-    return (jax.vmap(W.obstacle_sdf, (None, 0))(w, pts), *W.obstacle_sdf_and_grad(w, p))
+  sdf_at = jax.vmap(W.obstacle_sdf, (None, 0))
+  grad_at = jax.vmap(jax.value_and_grad(W.obstacle_sdf, argnums=1), (None, 0))
 
-  ref = jax.jit(jax.vmap(separate, (None, 0, 0)))
+  def ref(w, pts, p):
+    return (jax.vmap(lambda q: sdf_at(w, q))(pts), *grad_at(w, p))
+
   near = 0
   for k, w, pts in _worlds_and_points_near_obstacles(drone_batches, rng, (32, 6)):
     got, want = fn(w, pts[:, :5], pts[:, 5]), ref(w, pts[:, :5], pts[:, 5])
