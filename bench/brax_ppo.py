@@ -231,8 +231,9 @@ def main(argv=None):
   if a.envs % a.minibatches:
     p.error(f"--envs {a.envs} must be a multiple of --minibatches {a.minibatches}")
   import envs
+  from specguard_jax.ppo.iteration import trainer_env_options
   env = envs.make(a.vehicle, control_mode="override", override_frame="body", fused_ekf=a.fused_ekf,
-                  nan_fallback=False)   # the trainer's phase-1 env (iteration.make_env): AutoReset covers NaN steps
+                  **trainer_env_options())   # the trainer's phase-1 env (iteration.make_env)
   log = (lambda s: print(s, file=sys.stderr, flush=True)) if a.verbose else None
   r = run_brax_ppo(env, num_envs=a.envs, num_timesteps=a.steps, unroll_length=a.unroll,
                    batch_size=a.envs // a.minibatches, num_minibatches=a.minibatches,

@@ -39,7 +39,8 @@ def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True, tra
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
 
-  env = envs.make(vehicle, fused_ekf=fused_ekf, nan_fallback=not trainer_env)
+  from specguard_jax.ppo.iteration import trainer_env_options
+  env = envs.make(vehicle, fused_ekf=fused_ekf, **(trainer_env_options() if trainer_env else {}))
   benv = AutoReset(VmapWrapper(env), refresh_in_step=not trainer_env) if autoreset else VmapWrapper(env)
   keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
   t0 = time.perf_counter()

@@ -227,7 +227,8 @@ def main(argv=None):
                   help="with --env-step: only the physics, mjx.step x ticks_per_step per env step (same model, batch)")
   ap.add_argument("--steps", type=int, default=4, help="env steps per profiled call (--env-step)")
   ap.add_argument("--no-nan-fallback", action="store_true",
-                  help="--env-step: the trainer's env (EnvConfig.nan_fallback=False, as ppo/iteration.make_env)")
+                  help="--env-step: the trainer's env (ppo/iteration.trainer_env_options: no NaN fallback, no EKF "
+                       "records in phase 1)")
   ap.add_argument("--top", type=int, default=15)
   ap.add_argument("--show", nargs="*", default=["other"], help="stages whose largest kernels are listed too")
   ap.add_argument("--keep-command-buffers", action="store_true")
@@ -258,7 +259,9 @@ def main(argv=None):
 
     import envs
     phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase == 2 else {}
-    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, nan_fallback=not a.no_nan_fallback, **phase2)
+    from specguard_jax.ppo.iteration import trainer_env_options
+    trainer = trainer_env_options(phase2.get("detector", "none")) if a.no_nan_fallback else {}
+    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **phase2)
     st = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), a.envs))
     act = jnp.zeros((a.envs, env.action_size))
     if a.raw_mjx:
@@ -271,7 +274,7 @@ def main(argv=None):
     else:
       one = lambda s: jax.vmap(env.step)(s, act)   # noqa: E731
       args, what = (st,), (f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}, "
-                           f"nan_fallback={not a.no_nan_fallback}")
+                           f"{'the trainer env' if a.no_nan_fallback else 'nan_fallback=True'}")
     fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
     label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
     compiled = fn.lower(*args).compile()

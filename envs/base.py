@@ -179,6 +179,11 @@ class EnvConfig:
   # finished env's whole state with a fresh one anyway; obs, reward, signals, STL monitor and episode record are
   # sanitised either way. Saves one select over the whole state per step.
   nan_fallback: bool = True
+  # The EKFs' per-channel records (EKFState innov, test_ratio, accepted, fresh: the autopilot's and the reconstruction's
+  # shadow filter's), which only the residual detector reads. False: not updated (ekf.ekf_step(records=False); held at
+  # their reset values), the trainer's env unless it trains with the residual detector (ppo/iteration.make_env): three
+  # [11]-float selects and a write fewer per filter and tick.
+  ekf_records: bool = True
 
   def validate(self):
     check_ekf_kernel(self.fused_ekf)
@@ -193,6 +198,8 @@ class EnvConfig:
       raise ValueError(f"unknown detector {self.detector!r}; choose one of {DETECTORS}")
     if self.control_mode == "reactive" and self.detector == "none":
       raise ValueError("control_mode='reactive' needs a detector ('residual' or 'oracle')")
+    if self.detector == "residual" and not self.ekf_records:
+      raise ValueError("detector='residual' reads the EKF's test ratios: it needs ekf_records=True")
     if self.reconstruction and self.detector == "none":
       raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
     if self.reward not in REWARDS:
@@ -526,7 +533,8 @@ class RAVEnv(Env):
       with jax.named_scope("reconstruction"):
         rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                        u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
-                                                       anchor, gps_due, fused=self._fused_shadow)
+                                                       anchor, gps_due, fused=self._fused_shadow,
+                                                       records=cfg.ekf_records)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)
@@ -547,7 +555,8 @@ class RAVEnv(Env):
     """The autopilot's EKF tick. gps_due False: no env can have a fresh GPS sample, and the GPS rows are left out of
     the fusion (ekf.on_gps_schedule). None: the full tick."""
     return ekf_lib.on_gps_schedule(lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt,
-                                                                  stale=stale, fused=self._fused_ekf), gps_due)
+                                                                  stale=stale, fused=self._fused_ekf,
+                                                                  records=self.config.ekf_records), gps_due)
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""

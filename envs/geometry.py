@@ -62,9 +62,16 @@ def sdf_cylinder(p: jnp.ndarray, cyl: jnp.ndarray) -> jnp.ndarray:
   return jnp.minimum(jnp.maximum(d_r, d_z), 0.0) + _safe_hypot(jnp.maximum(d_r, 0.0), jnp.maximum(d_z, 0.0))
 
 
-def _box_local_xy(p_xy: jnp.ndarray, box: jnp.ndarray):
-  """p_xy [2] expressed in the box frame (centre at the origin, axes along the box): its two coordinates []."""
-  c, s = jnp.cos(box[4]), jnp.sin(box[4])
+def prism_axes(prisms: jnp.ndarray) -> jnp.ndarray:
+  """(cos yaw, sin yaw) [..., 2] of oriented prisms [..., 6] (boxes, keep-out prisms): their horizontal axes, which a
+  world computes once (`worlds.World.box_axes`) for the queries that run every env step."""
+  return jnp.stack([jnp.cos(prisms[..., 4]), jnp.sin(prisms[..., 4])], -1)
+
+
+def _box_local_xy(p_xy: jnp.ndarray, box: jnp.ndarray, axes=None):
+  """p_xy [2] expressed in the box frame (centre at the origin, axes along the box): its two coordinates [].
+  axes: the box's `prism_axes` [2] if at hand, else computed from its yaw."""
+  c, s = (jnp.cos(box[4]), jnp.sin(box[4])) if axes is None else (axes[0], axes[1])
   d0, d1 = p_xy[0] - box[0], p_xy[1] - box[1]
   return c * d0 + s * d1, -s * d0 + c * d1
 
@@ -77,16 +84,18 @@ def _sdf_orthotope(*q: jnp.ndarray) -> jnp.ndarray:
   return jnp.minimum(inside, 0.0) + _safe_hypot(*(jnp.maximum(x, 0.0) for x in q))
 
 
-def sdf_box(p: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
-  """Signed distance from p [3] to the oriented prism box [6] = (cx, cy, half_x, half_y, yaw, height) on z = 0, m."""
-  l0, l1 = _box_local_xy(p, box)
+def sdf_box(p: jnp.ndarray, box: jnp.ndarray, axes=None) -> jnp.ndarray:
+  """Signed distance from p [3] to the oriented prism box [6] = (cx, cy, half_x, half_y, yaw, height) on z = 0, m.
+  axes: optional [2] `prism_axes(box)` (else computed from the yaw)."""
+  l0, l1 = _box_local_xy(p, box, axes)
   half_h = 0.5 * box[5]
   return _sdf_orthotope(jnp.abs(l0) - box[2], jnp.abs(l1) - box[3], jnp.abs(p[2] - half_h) - half_h)
 
 
-def sdf_box_xy(p_xy: jnp.ndarray, box: jnp.ndarray) -> jnp.ndarray:
-  """Signed horizontal distance from p_xy [2] to the footprint of box [6] (> 0 outside the footprint), m."""
-  l0, l1 = _box_local_xy(p_xy, box)
+def sdf_box_xy(p_xy: jnp.ndarray, box: jnp.ndarray, axes=None) -> jnp.ndarray:
+  """Signed horizontal distance from p_xy [2] to the footprint of box [6] (> 0 outside the footprint), m.
+  axes: optional [2] `prism_axes(box)` (else computed from the yaw)."""
+  l0, l1 = _box_local_xy(p_xy, box, axes)
   return _sdf_orthotope(jnp.abs(l0) - box[2], jnp.abs(l1) - box[3])
 
 

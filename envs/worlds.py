@@ -49,6 +49,8 @@ class World:
   cylinders: [MAX_CYLINDERS, 4] (x, y, radius, height); cylinder_mask: [MAX_CYLINDERS] bool.
   boxes: [MAX_BOXES, 6] (cx, cy, half_x, half_y, yaw, height); box_mask: [MAX_BOXES] bool.
   fences: [MAX_FENCES, 6] keep-out prisms encoded like boxes (height FENCE_HEIGHT); fence_mask: [MAX_FENCES] bool.
+  box_axes: [MAX_BOXES, 2], fence_axes: [MAX_FENCES, 2] (cos yaw, sin yaw) of boxes / fences (`make_world` fills them,
+    geometry.prism_axes): the env step's queries read them instead of taking 30 cosines and sines per env and step.
   boundary: [4] operating rectangle (xmin, xmax, ymin, ymax); boundary_on: [] bool, outside is forbidden if true.
   ceiling: [] max allowed altitude (NO_CEILING = 1e3 outdoors).
   wind_mean: [3] mean wind velocity (horizontal), m/s; gust_std: [] std of gusts per axis, m/s.
@@ -61,6 +63,8 @@ class World:
   box_mask: jnp.ndarray
   fences: jnp.ndarray
   fence_mask: jnp.ndarray
+  box_axes: jnp.ndarray
+  fence_axes: jnp.ndarray
   boundary: jnp.ndarray
   boundary_on: jnp.ndarray
   ceiling: jnp.ndarray
@@ -429,11 +433,23 @@ def generate_world(preset, mission: Mission, rng: jax.Array, clearance: float = 
   wind_mean = jnp.stack([speed * jnp.cos(direction), speed * jnp.sin(direction), jnp.zeros(())])
   gust_std = _uniform(r, p.gust_std)
 
+  return make_world(cylinders=cylinders, cylinder_mask=cylinder_mask, boxes=boxes, box_mask=box_mask, fences=fences,
+                    fence_mask=fence_mask, boundary=boundary, boundary_on=boundary_on, ceiling=ceiling,
+                    wind_mean=wind_mean, gust_std=gust_std, preset_id=preset_id)
+
+
+def make_world(cylinders, cylinder_mask, boxes, box_mask, fences, fence_mask, boundary, boundary_on, ceiling, wind_mean,
+               gust_std, preset_id=-1) -> World:
+  """A World from its obstacles, fences, limits and weather (shapes and units: World), with the derived fields
+  (box_axes, fence_axes) computed from them and every field cast to its dtype."""
   f32 = lambda x: jnp.asarray(x, jnp.float32)
+  boxes, fences = f32(boxes), f32(fences)
   return World(
-    cylinders=f32(cylinders), cylinder_mask=cylinder_mask, boxes=f32(boxes), box_mask=box_mask, fences=f32(fences),
-    fence_mask=fence_mask, boundary=f32(boundary), boundary_on=jnp.asarray(boundary_on, bool), ceiling=f32(ceiling),
-    wind_mean=f32(wind_mean), gust_std=f32(gust_std), preset_id=jnp.asarray(preset_id, jnp.int32))
+    cylinders=f32(cylinders), cylinder_mask=jnp.asarray(cylinder_mask, bool), boxes=boxes,
+    box_mask=jnp.asarray(box_mask, bool), fences=fences, fence_mask=jnp.asarray(fence_mask, bool),
+    box_axes=geo.prism_axes(boxes), fence_axes=geo.prism_axes(fences), boundary=f32(boundary),
+    boundary_on=jnp.asarray(boundary_on, bool), ceiling=f32(ceiling), wind_mean=f32(wind_mean), gust_std=f32(gust_std),
+    preset_id=jnp.asarray(preset_id, jnp.int32))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -479,18 +495,18 @@ def obstacle_queries(world: World, points: jnp.ndarray, pos: jnp.ndarray):
   k = points.shape[0]
 
   def nearest(sdf, slots, mask):
-    n = slots.shape[0]
+    n = mask.shape[0]
     d_pts = jax.vmap(lambda s: jax.vmap(sdf, (0, None))(points, s))(slots)        # [n, K]
     d = jax.vmap(sdf, (None, 0))(pos, slots)                                       # [n]
     ops = (*jnp.where(mask[:, None], d_pts, geo.FAR).T, jnp.where(mask, d, geo.FAR), jnp.arange(n, dtype=jnp.int32))
     init = (*([jnp.float32(geo.FAR)] * k), jnp.float32(jnp.inf), jnp.int32(n))
     out = jax.lax.reduce(ops, init, _first_nearest, (0,))
     i = out[k + 1]
-    g = jnp.where(mask[i], jax.grad(sdf)(pos, slots[i]), 0.0)
+    g = jnp.where(mask[i], jax.grad(sdf)(pos, jax.tree.map(lambda x: x[i], slots)), 0.0)
     return jnp.stack(out[:k]) if k else jnp.zeros((0,), jnp.float32), out[k], g
 
   pc, dc, gc = nearest(geo.sdf_cylinder, world.cylinders, world.cylinder_mask)
-  pb, db, gb = nearest(geo.sdf_box, world.boxes, world.box_mask)
+  pb, db, gb = nearest(lambda p, s: geo.sdf_box(p, *s), (world.boxes, world.box_axes), world.box_mask)
   return jnp.minimum(pc, pb), jnp.minimum(jnp.minimum(dc, db), geo.FAR), jnp.where(dc <= db, gc, gb)
 
 
@@ -502,8 +518,8 @@ def fence_distances(world: World, pos: jnp.ndarray):
   h = 1e3). "Nearest" = smallest margin; its h and v are returned. 1e3 everywhere if there is no fence.
   """
   z = pos[2]
-  pm = jax.vmap(geo.sdf_box, (None, 0))(pos, world.fences)
-  ph = jax.vmap(geo.sdf_box_xy, (None, 0))(pos[:2], world.fences)
+  pm = jax.vmap(geo.sdf_box, (None, 0, 0))(pos, world.fences, world.fence_axes)
+  ph = jax.vmap(geo.sdf_box_xy, (None, 0, 0))(pos[:2], world.fences, world.fence_axes)
   pv = z - world.fences[:, 5]
   far = jnp.full((1,), geo.FAR)
   bh = jnp.where(world.boundary_on, geo.rect_inside_margin(pos[:2], world.boundary), geo.FAR)[None]

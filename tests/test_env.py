@@ -351,6 +351,41 @@ def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
                              rtol=1e-6, atol=1e-7)
 
 
+RECORDS = ("innov", "test_ratio", "accepted", "fresh")
+
+
+def test_env_without_ekf_records_is_the_same_env(drone_env):
+  """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
+  per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,
+  STL monitor and episode record equal the env's with them (float32 rounding: two programs); the residual detector,
+  which reads them, refuses the setting."""
+  import copy
+  env_off = copy.copy(drone_env)
+  env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
+  s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(9), 2))
+  a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
+
+  def three(env, s):
+    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
+  on, off = jax.jit(lambda s: (three(drone_env, s), three(env_off, s)))(s)
+  ekf0, ekf_on, ekf_off = (x.info["sim"]["ekf"] for x in (s, on, off))
+  for name in RECORDS:
+    np.testing.assert_array_equal(np.asarray(getattr(ekf_off, name)), np.asarray(getattr(ekf0, name)), name)
+  # ... which the env with them updates (else this test could not tell the two apart)
+  assert np.any(np.asarray(ekf_on.test_ratio) != np.asarray(ekf0.test_ratio))
+  assert np.any(np.asarray(ekf_on.fresh) != np.asarray(ekf0.fresh))
+  drop = lambda st: st.replace(info=dict(st.info, sim=dict(st.info["sim"], ekf=st.info["sim"]["ekf"].replace(  # noqa: E731
+      **{n: jnp.zeros(()) for n in RECORDS}))))
+  for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(drop(on)), jax.tree.leaves(drop(off))):
+    x, y = np.asarray(x), np.asarray(y)
+    if np.issubdtype(y.dtype, np.floating):
+      np.testing.assert_allclose(x, y, rtol=2e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+    else:
+      np.testing.assert_array_equal(x, y, err_msg=jax.tree_util.keystr(path))
+  with pytest.raises(ValueError, match="ekf_records"):
+    envs.make("drone", detector="residual", ekf_records=False)
+
+
 def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
   """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
   refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""

@@ -128,6 +128,10 @@ def test_structure_boundary_ceiling_weather(drone_batches):
     assert np.all(pts[..., 0].min(1) - b[:, 0] >= lo_margin) and np.all(b[:, 1] - pts[..., 0].max(1) >= lo_margin)
     assert np.all(pts[..., 1].min(1) - b[:, 2] >= lo_margin) and np.all(b[:, 3] - pts[..., 1].max(1) >= lo_margin)
     np.testing.assert_array_equal(w.boundary_on, preset.geofence != "properties")
+    # the prisms' horizontal axes, which the queries read in place of their yaws
+    for prisms, axes in ((w.boxes, w.box_axes), (w.fences, w.fence_axes)):
+      yaw = prisms[..., 4].astype(np.float64)
+      np.testing.assert_allclose(axes, np.stack([np.cos(yaw), np.sin(yaw)], -1), atol=2e-6, err_msg=name)
     n_fences = w.fence_mask.sum(-1)
     if preset.geofence == "properties":
       assert n_fences.mean() >= 3.0, name
@@ -188,7 +192,6 @@ def _toy_mission():
 
 
 def _toy_world(boundary_on=True, ceiling=30.0):
-  f = lambda x: jnp.asarray(x, jnp.float32)
   cyl = np.zeros((W.MAX_CYLINDERS, 4), np.float32)
   cyl[0] = [50, 20, 2, 10]      # tree beside the first leg
   box = np.zeros((W.MAX_BOXES, 6), np.float32)
@@ -198,10 +201,9 @@ def _toy_world(boundary_on=True, ceiling=30.0):
   cm = np.zeros(W.MAX_CYLINDERS, bool); cm[0] = True
   bm = np.zeros(W.MAX_BOXES, bool); bm[0] = True
   fm = np.zeros(W.MAX_FENCES, bool); fm[0] = True
-  return W.World(cylinders=f(cyl), cylinder_mask=jnp.asarray(cm), boxes=f(box), box_mask=jnp.asarray(bm),
-                 fences=f(fen), fence_mask=jnp.asarray(fm), boundary=f([-30, 130, -60, 130]),
-                 boundary_on=jnp.asarray(boundary_on), ceiling=f(ceiling), wind_mean=f([0, 0, 0]), gust_std=f(0.0),
-                 preset_id=jnp.int32(-1))
+  return W.make_world(cylinders=cyl, cylinder_mask=cm, boxes=box, box_mask=bm, fences=fen, fence_mask=fm,
+                      boundary=[-30, 130, -60, 130], boundary_on=boundary_on, ceiling=ceiling, wind_mean=[0, 0, 0],
+                      gust_std=0.0)
 
 
 @pytest.mark.parametrize("pos, target, want", [

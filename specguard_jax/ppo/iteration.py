@@ -50,16 +50,22 @@ class Carry:
   iteration: jnp.ndarray      # [] int32 iterations done in this phase
 
 
+def trainer_env_options(detector: str = "none") -> dict:
+  """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"): no NaN
+  fallback (its AutoReset replaces a NaN-terminated env's state, EnvConfig.nan_fallback) and no EKF per-channel
+  records unless the detector reads them (detector 'residual', EnvConfig.ekf_records)."""
+  return dict(nan_fallback=False, ekf_records=detector == "residual")
+
+
 def make_env(cfg: TrainConfig, phase: int):
-  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv). Without the NaN fallback: the trainer's
-  AutoReset replaces a NaN-terminated env's state (envs.base.EnvConfig.nan_fallback)."""
+  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv), with `trainer_env_options`."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                fused_ekf=cfg.fused_ekf, nan_fallback=False)
+                fused_ekf=cfg.fused_ekf)
   if phase == 1:
-    return envs_lib.make(cfg.vehicle, control_mode="override", **common)
+    return envs_lib.make(cfg.vehicle, control_mode="override", **trainer_env_options(), **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
                       detector=cfg.detector, detector_delay=cfg.detector_delay,
-                      reconstruction=cfg.reconstruction, **common)
+                      reconstruction=cfg.reconstruction, **trainer_env_options(cfg.detector), **common)
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
