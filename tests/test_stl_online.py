@@ -108,3 +108,30 @@ def test_functional_api_and_state_size():
   s, v = stl.monitor_update("always((x > 0) -> eventually[0,3](y > 0))", s, {"x": jnp.ones(5), "y": -jnp.ones(5)})
   assert v.shape == (5,)
   np.testing.assert_array_equal(v, -1.0)  # trace so far [x=1, y=-1]: eventually window truncated -> -1
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=bounded(depth=3), t=st.sampled_from([1, 2, 5, 8, 13]), seed=st.integers(0, 2**31 - 1))
+def test_columns_equal_the_array_form(text, t, seed):
+  """The monitor's per-position form (stl/columns.py) gives offline.evaluate's values exactly (min / max and the
+  same affine arithmetic per position), windows longer than the buffer included."""
+  from specguard_jax.stl import columns, offline
+  rng = np.random.default_rng(seed)
+  sig = {k: jnp.asarray(np.round(rng.uniform(-3, 3, (3, t)), 3).astype(np.float32)) for k in SIGS}
+  f = stl.OnlineMonitor.create(text).formula
+  want = np.asarray(offline.evaluate(f, sig))
+  got = np.stack([np.broadcast_to(np.asarray(c), (3,)) for c in columns.evaluate_columns(
+      f, {k: columns.split_columns(v) for k, v in sig.items()})], -1)
+  np.testing.assert_array_equal(got, np.broadcast_to(want, got.shape), err_msg=text)
+
+
+@pytest.mark.parametrize("t", [1, 4, 7, 31])
+def test_window_columns_equal_window_reduce(t):
+  from specguard_jax.stl import columns, windows
+  x = jnp.asarray(np.random.default_rng(t).normal(size=(2, t)).astype(np.float32))
+  for a in range(0, t + 2):
+    for b in range(a, t + 3):
+      for op in (jnp.minimum, jnp.maximum):
+        want = np.asarray(windows.window_reduce(x, a, b, op))
+        got = np.stack([np.asarray(c) for c in columns.window_columns(columns.split_columns(x), a, b, op)], -1)
+        np.testing.assert_array_equal(got, want, err_msg=f"[{a},{b}] {op.__name__}")

@@ -18,9 +18,8 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import jax.numpy as jnp
 from flax import struct
-from jax import lax
 
-from specguard_jax.stl import ast
+from specguard_jax.stl import ast, columns
 from specguard_jax.stl.errors import UnknownSignalError, UnsupportedOnlineError
 from specguard_jax.stl.offline import as_formula, evaluate
 
@@ -118,22 +117,28 @@ class OnlineMonitor:
         vals.append(evaluate(f, buf, valid)[..., 0])
         new_acc.append(())
         continue
-      buf = {n: b[..., hw - h:] for n, b in window.items()}
-      valid = jnp.arange(h + 1) >= (h - t)[..., None]  # buffer position k holds time t - h + k
+      # The window's h + 1 positions as separate [...] arrays (stl/columns.py: the array form's cumulative min / max
+      # are O(h^2) reduce-windows on the GPU); position k holds time t - h + k, valid once t - h + k >= 0.
+      buf = {n: columns.split_columns(b[..., hw - h:]) for n, b in window.items()}
+      valid = [t >= h - k for k in range(h + 1)]
       if kind in ("G", "F"):
-        op, red, fill = ((jnp.minimum, jnp.min, jnp.inf) if kind == "G" else (jnp.maximum, jnp.max, -jnp.inf))
-        v = jnp.where(valid, evaluate(f.arg, buf), fill)
-        vals.append(op(acc[0], red(v, axis=-1)))
-        new_acc.append((op(acc[0], v[..., 0]),))
-      else:  # unbounded until
+        op, fill = (jnp.minimum, jnp.inf) if kind == "G" else (jnp.maximum, -jnp.inf)
+        v = [jnp.where(ok, x, fill) for ok, x in zip(valid, columns.evaluate_columns(f.arg, buf))]
+        red = v[0]
+        for x in v[1:]:
+          red = op(red, x)
+        vals.append(op(acc[0], red))
+        new_acc.append((op(acc[0], v[0]),))
+      else:  # unbounded until: max over open positions j of min(r[j], l before j (finalised and open))
         m_fin, best_fin = acc
-        lv = jnp.where(valid, evaluate(f.left, buf), jnp.inf)
-        rv = jnp.where(valid, evaluate(f.right, buf), -jnp.inf)
-        cm = lax.cummin(lv, axis=lv.ndim - 1)
-        cm_excl = jnp.concatenate([jnp.full(bs + (1,), jnp.inf, lv.dtype), cm[..., :-1]], axis=-1)
-        cm_excl = jnp.minimum(cm_excl, m_fin[..., None])
-        vals.append(jnp.maximum(best_fin, jnp.max(jnp.minimum(rv, cm_excl), axis=-1)))
-        new_acc.append((jnp.minimum(m_fin, lv[..., 0]), jnp.maximum(best_fin, jnp.minimum(rv[..., 0], m_fin))))
+        lv = [jnp.where(ok, x, jnp.inf) for ok, x in zip(valid, columns.evaluate_columns(f.left, buf))]
+        rv = [jnp.where(ok, x, -jnp.inf) for ok, x in zip(valid, columns.evaluate_columns(f.right, buf))]
+        cm_excl, best = m_fin, jnp.minimum(rv[0], m_fin)
+        for k in range(1, h + 1):
+          cm_excl = jnp.minimum(cm_excl, lv[k - 1])
+          best = jnp.maximum(best, jnp.minimum(rv[k], cm_excl))
+        vals.append(jnp.maximum(best_fin, best))
+        new_acc.append((jnp.minimum(m_fin, lv[0]), jnp.maximum(best_fin, jnp.minimum(rv[0], m_fin))))
     out = _combine(skel, vals)
     return MonitorState(t + 1, window, prefix, tuple(new_acc)), out
 
