@@ -735,7 +735,8 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   interpreter (tests, on the CPU). The same filter every way (to float32 rounding), P in any layout.
   records: False leaves the per-channel records (innov, test_ratio, accepted, fresh) as `state` holds them, for a
   filter whose records nobody reads (static; the env's `EnvConfig.ekf_records`): the same filter otherwise, three
-  [11]-float selects and a write fewer per tick (on the GPU, ~13 us per tick at 65,536 drones).
+  [11]-float selects and a write fewer per tick (on an H200 at 65,536 envs ~0.1 / ~0.45 ms per drone / rover env step
+  of 5 ticks, BENCHMARKS.md session 38).
   """
   s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
