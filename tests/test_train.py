@@ -231,6 +231,14 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
   assert not bad, bad[:3]
 
 
+def test_trainer_envs_keep_the_ekf_records_only_for_the_residual_detector():
+  """The trainer's envs skip the NaN fallback, and the EKF records unless the training detector reads them."""
+  for detector, phase, want in (("oracle", 1, False), ("oracle", 2, False), ("residual", 2, True)):
+    env = iteration.make_env(tiny(detector=detector), phase)
+    env = getattr(env, "env", env)   # phase 2: the AttackerEnv's wrapped env
+    assert (env.config.nan_fallback, env.config.ekf_records) == (False, want), (detector, phase)
+
+
 def _dot_precisions(cfg, phase, precision=True):
   """[(bf16?, names of the scopes it was traced in)] of every dot_general in the lowered phase program. bf16: the
   dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
