@@ -120,8 +120,7 @@ def test_columns_equal_the_array_form(text, t, seed):
   sig = {k: jnp.asarray(np.round(rng.uniform(-3, 3, (3, t)), 3).astype(np.float32)) for k in SIGS}
   f = stl.OnlineMonitor.create(text).formula
   want = np.asarray(offline.evaluate(f, sig))
-  got = np.stack([np.broadcast_to(np.asarray(c), (3,)) for c in columns.evaluate_columns(
-      f, {k: columns.split_columns(v) for k, v in sig.items()})], -1)
+  got = np.stack([np.broadcast_to(np.asarray(c), (3,)) for c in columns.evaluate_columns(f, sig)], -1)
   np.testing.assert_array_equal(got, np.broadcast_to(want, got.shape), err_msg=text)
 
 

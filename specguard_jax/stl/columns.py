@@ -5,10 +5,13 @@ window form of `offline.evaluate`).
 jax lowers to reduce-windows (`lax.cummax` / `lax.cummin` on every backend in jax 0.10-0.11). XLA fuses those into a
 kernel whose every output position re-reads its whole window, O(T^2) strided loads per trace: 44 / 56 us per drone /
 rover env step at 65,536 envs on an H200 for the monitor's 31-sample windows (BENCHMARKS.md session 38). Here the
-buffer is a list of T arrays [...] (the positions, oldest first) and every operator builds one array per position from
-those it needs (suffix chains, van Herk / Gil-Werman blocks for the windows, the until recurrence): O(T) arrays per
-operator, each one elementwise over the batch, which XLA fuses into one pass per trace. The values are those of
-`offline.evaluate` (the same min / max / affine arithmetic per position; tests/test_stl_online.py).
+temporal-free parts of the formula stay [..., T] arrays (one op per node) and, from a window operator up, every node
+is a list of T arrays [...] (positions oldest first): suffix chains, van Herk / Gil-Werman blocks for the windows, the
+until recurrence, O(T) arrays per operator, each elementwise over the batch, which XLA fuses into one pass per trace.
+(Session 38's first form, the one timed on the GPU, split the predicates per position too: a program twice the
+size, the drone monitor compiling in 1.65 s on the CPU against 0.66 s, and ~6 s more compile for an env step on the
+GPU.) The values are those of `offline.evaluate`: the same min / max / affine
+arithmetic per position (tests/test_stl_online.py).
 """
 
 from __future__ import annotations
@@ -76,30 +79,41 @@ def _shift(x: Columns, s: int, fill: float) -> Columns:
   return x[s:] + [_fill_like(x, fill)] * min(s, len(x))
 
 
-def evaluate_columns(f: ast.Formula, sig: Mapping[str, Columns]) -> Columns:
-  """`offline.evaluate(f, {n: stack(cols)})` (no validity mask) as T arrays [...]: sig maps each signal to its T
-  positions (equal lengths, oldest first)."""
-  ev = lambda g: evaluate_columns(g, sig)   # noqa: E731
+def as_columns(x) -> Columns:
+  """An operand as columns: a [..., T] array split by position, a list as it is."""
+  return x if isinstance(x, list) else split_columns(x)
+
+
+def _elementwise(op, a, b):
+  """op on two operands: one [..., T] array op if both are arrays (temporal-free so far), else per position."""
+  if not isinstance(a, list) and not isinstance(b, list):
+    return op(a, b)
+  return [op(u, v) for u, v in zip(as_columns(a), as_columns(b))]
+
+
+def _evaluate(f: ast.Formula, sig: Mapping[str, jnp.ndarray]):
+  """`offline.evaluate(f, sig)` (no validity mask) as a [..., T] array while f's sub-formula is temporal-free (one
+  op per node), as T per-position arrays from its first window operator up."""
+  ev = lambda g: _evaluate(g, sig)   # noqa: E731
   if isinstance(f, ast.Predicate):
-    t = len(next(iter(sig.values())))
-    return [predicate_value(f, {n: v[k] for n, v in sig.items()}) for k in range(t)]
+    return predicate_value(f, sig)
   if isinstance(f, ast.Not):
-    return [-v for v in ev(f.arg)]
-  if isinstance(f, (ast.And, ast.Or, ast.Implies)):
-    a, b = ev(f.left), ev(f.right)
-    if isinstance(f, ast.And):
-      return [jnp.minimum(u, v) for u, v in zip(a, b)]
-    if isinstance(f, ast.Or):
-      return [jnp.maximum(u, v) for u, v in zip(a, b)]
-    return [jnp.maximum(-u, v) for u, v in zip(a, b)]
+    x = ev(f.arg)
+    return [-v for v in x] if isinstance(x, list) else -x
+  if isinstance(f, ast.And):
+    return _elementwise(jnp.minimum, ev(f.left), ev(f.right))
+  if isinstance(f, ast.Or):
+    return _elementwise(jnp.maximum, ev(f.left), ev(f.right))
+  if isinstance(f, ast.Implies):
+    return _elementwise(lambda u, v: jnp.maximum(-u, v), ev(f.left), ev(f.right))
   if isinstance(f, (ast.Always, ast.Eventually)):
     op = jnp.minimum if isinstance(f, ast.Always) else jnp.maximum
-    x = ev(f.arg)
+    x = as_columns(ev(f.arg))
     if f.interval is None:
       return window_columns(x, 0, len(x) - 1, op)
     return window_columns(x, int(f.interval.lo), int(f.interval.hi), op)
   if isinstance(f, ast.Until):
-    l, r = ev(f.left), ev(f.right)
+    l, r = as_columns(ev(f.left)), as_columns(ev(f.right))
     if f.interval is None:
       return _until_unbounded(l, r)
     # offline.until_bounded's identity: G[0,a-1] l and shift_a((l U r) and F[0,b-a] r)
@@ -110,3 +124,10 @@ def evaluate_columns(f: ast.Formula, sig: Mapping[str, Columns]) -> Columns:
       out = [jnp.minimum(u, v) for u, v in zip(out, window_columns(l, 0, a - 1, jnp.minimum))]
     return out
   raise STLError(f"unknown formula node {type(f).__name__}")
+
+
+def evaluate_columns(f: ast.Formula, sig: Mapping[str, jnp.ndarray]) -> Columns:
+  """`offline.evaluate(f, sig)` (no validity mask) as T arrays [...], position k = its [..., k]; sig: {name: [..., T]}
+  of equal shapes. The temporal-free parts stay one [..., T] op per node (a small program); from a window operator up
+  every node is one op per position."""
+  return as_columns(_evaluate(f, sig))

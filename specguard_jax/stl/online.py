@@ -119,7 +119,7 @@ class OnlineMonitor:
         continue
       # The window's h + 1 positions as separate [...] arrays (stl/columns.py: the array form's cumulative min / max
       # are O(h^2) reduce-windows on the GPU); position k holds time t - h + k, valid once t - h + k >= 0.
-      buf = {n: columns.split_columns(b[..., hw - h:]) for n, b in window.items()}
+      buf = {n: b[..., hw - h:] for n, b in window.items()}
       valid = [t >= h - k for k in range(h + 1)]
       if kind in ("G", "F"):
         op, fill = (jnp.minimum, jnp.inf) if kind == "G" else (jnp.maximum, -jnp.inf)
