@@ -111,6 +111,7 @@ def main():
   from envs.wrappers import AutoReset
   phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
   env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+  from specguard_jax import ekf as ekf_lib
   from specguard_jax.ppo.iteration import trainer_env_options
   trainer = trainer_env_options(phase2.get("detector", "none"))
   env_nf = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **phase2) if a.ab_nan_fallback else None
@@ -178,7 +179,7 @@ def main():
         continue
       for what, s0 in (("half of the envs", ending(2)), ("1 in 64 envs", ending(64))):
         s_ref, s_var = roll(per_roll, s0), roll(w, s0)
-        records = (".innov", ".test_ratio", ".accepted", ".fresh")   # EKF records: the trainer's env may skip them
+        records = tuple("." + f for f in ekf_lib.RECORD_FIELDS)   # the trainer's env may skip the EKF records
         diff = max(float(jnp.max(jnp.abs(x - y))) for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(s_ref),
                                                                            jax.tree.leaves(s_var))
                    if jnp.issubdtype(x.dtype, jnp.number) and x.size

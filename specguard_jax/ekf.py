@@ -118,6 +118,10 @@ class EKFConfig:
     return cls(**kw)
 
 
+RECORD_FIELDS = ("innov", "test_ratio", "accepted", "fresh")
+"""EKFState's per-channel records: kept for the residual detector, skipped by `ekf_step(records=False)`."""
+
+
 @struct.dataclass
 class EKFState:
   """Filter state of one vehicle.
@@ -769,7 +773,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
                test_ratio=jnp.where(fc, ratio[:N_CHANNELS], state.test_ratio),
                accepted=jnp.where(fc, accept[:N_CHANNELS].astype(f32), state.accepted), fresh=fc.astype(f32))
   else:
-    rec = dict(innov=state.innov, test_ratio=state.test_ratio, accepted=state.accepted, fresh=state.fresh)
+    rec = {name: getattr(state, name) for name in RECORD_FIELDS}
 
   # timeout bookkeeping and the nominal state's side of the resets (P's side was done in the cov tick)
   reset_pos, reset_vel, reset_hgt = _resets(accept, due)

@@ -14,6 +14,7 @@ from envs import missions as missions_lib
 from envs import rollout
 from envs.base import ASSETS, check_physics_options
 from envs.wrappers import AutoReset
+from specguard_jax import ekf as ekf_lib
 
 SHORT_DRONE = missions_lib.MissionConfig.drone(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
 SHORT_ROVER = missions_lib.MissionConfig.rover(max_duration_s=50.0, min_duration_s=25.0, n_waypoints=(2, 4))
@@ -351,9 +352,6 @@ def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
                              rtol=1e-6, atol=1e-7)
 
 
-RECORDS = ("innov", "test_ratio", "accepted", "fresh")
-
-
 def test_env_without_ekf_records_is_the_same_env(drone_env):
   """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
   per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,
@@ -369,13 +367,13 @@ def test_env_without_ekf_records_is_the_same_env(drone_env):
     return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
   on, off = jax.jit(lambda s: (three(drone_env, s), three(env_off, s)))(s)
   ekf0, ekf_on, ekf_off = (x.info["sim"]["ekf"] for x in (s, on, off))
-  for name in RECORDS:
+  for name in ekf_lib.RECORD_FIELDS:
     np.testing.assert_array_equal(np.asarray(getattr(ekf_off, name)), np.asarray(getattr(ekf0, name)), name)
   # ... which the env with them updates (else this test could not tell the two apart)
   assert np.any(np.asarray(ekf_on.test_ratio) != np.asarray(ekf0.test_ratio))
   assert np.any(np.asarray(ekf_on.fresh) != np.asarray(ekf0.fresh))
   drop = lambda st: st.replace(info=dict(st.info, sim=dict(st.info["sim"], ekf=st.info["sim"]["ekf"].replace(  # noqa: E731
-      **{n: jnp.zeros(()) for n in RECORDS}))))
+      **{n: jnp.zeros(()) for n in ekf_lib.RECORD_FIELDS}))))
   for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(drop(on)), jax.tree.leaves(drop(off))):
     x, y = np.asarray(x), np.asarray(y)
     if np.issubdtype(y.dtype, np.floating):

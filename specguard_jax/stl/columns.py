@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from specguard_jax.stl import ast
 from specguard_jax.stl.errors import STLError
 from specguard_jax.stl.offline import predicate_value
+from specguard_jax.stl.windows import _identity
 
 Columns = List[jnp.ndarray]
 
@@ -30,10 +31,6 @@ Columns = List[jnp.ndarray]
 def split_columns(x: jnp.ndarray) -> Columns:
   """[..., T] -> T arrays [...] (position k = x[..., k])."""
   return [x[..., k] for k in range(x.shape[-1])]
-
-
-def _identity(op) -> float:
-  return jnp.inf if op is jnp.minimum else -jnp.inf
 
 
 def _fill_like(x: Columns, value: float) -> jnp.ndarray:
@@ -55,9 +52,10 @@ def window_columns(x: Columns, a: int, b: int, op) -> Columns:
     suf[end] = y[end]
     for k in range(end - 1, start - 1, -1):
       suf[k] = op(y[k], suf[k + 1])
-    pre[start] = y[start]
-    for k in range(start + 1, end + 1):
-      pre[k] = op(pre[k - 1], y[k])
+    if start > 0:   # a window ends in this block only if it starts in the one before
+      pre[start] = y[start]
+      for k in range(start + 1, end + 1):
+        pre[k] = op(pre[k - 1], y[k])
   out = []
   for k in range(n):
     e = min(k + w - 1, n - 1)     # the window's last position (truncated)
