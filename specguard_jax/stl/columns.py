@@ -3,8 +3,9 @@ window form of `offline.evaluate`).
 
 `offline.evaluate` works on [..., T] arrays: its windows are shifts and cumulative min / max along the last axis, which
 jax lowers to reduce-windows (`lax.cummax` / `lax.cummin` on every backend in jax 0.10-0.11). XLA fuses those into a
-kernel whose every output position re-reads its whole window, O(T^2) strided loads per trace: 44 / 56 us per drone /
-rover env step at 65,536 envs on an H200 for the monitor's 31-sample windows (BENCHMARKS.md session 38). Here the
+kernel whose every output position re-reads its whole window, O(T^2) strided loads per trace: the kernel holding them
+(the specs' robustness stack) took 44 / 56 us per drone / rover env step at 65,536 envs on an H200 with the monitor's
+31-sample windows (BENCHMARKS.md session 38). Here the
 temporal-free parts of the formula stay [..., T] arrays (one op per node) and, from a window operator up, every node
 is a list of T arrays [...] (positions oldest first): suffix chains, van Herk / Gil-Werman blocks for the windows, the
 until recurrence, O(T) arrays per operator, each elementwise over the batch, which XLA fuses into one pass per trace.
