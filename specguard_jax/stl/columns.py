@@ -9,9 +9,10 @@ kernel whose every output position re-reads its whole window, O(T^2) strided loa
 temporal-free parts of the formula stay [..., T] arrays (one op per node) and, from a window operator up, every node
 is a list of T arrays [...] (positions oldest first): suffix chains, van Herk / Gil-Werman blocks for the windows, the
 until recurrence, O(T) arrays per operator, each elementwise over the batch, which XLA fuses into one pass per trace.
-(Session 38's first form, the one timed on the GPU, split the predicates per position too: a program twice the
-size, the drone monitor compiling in 1.65 s on the CPU against 0.66 s, and ~6 s more compile for an env step on the
-GPU.) The values are those of `offline.evaluate`: the same min / max / affine
+(Session 38's first form split the predicates per position too: a program twice the size, the drone monitor
+compiling in 1.65 s on the CPU against 0.66 s, and ~6 s more compile for an env step on the GPU; this form ran -0.03
+ms per drone env step against the array form, -0.06 for the first, and as quick on the rover, with no compile cost
+beyond a call's spread: BENCHMARKS.md session 39.) The values are those of `offline.evaluate`: the same min / max / affine
 arithmetic per position (tests/test_stl_online.py).
 """
 
