@@ -321,18 +321,22 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
   return (Po, *_unpack_out(out, P.shape[0], spec))
 
 
-def _lanes_call(P, aux, n_rows, n_out, body, in_place):
+def _lanes_call(P, aux, n_rows, out_rows, body, in_place):
   """One Mosaic GPU kernel over P packed [B, 121] and aux [n_in, B] (vehicle-minor): each program copies its 128
-  vehicles' P rows and aux columns into shared memory (aux into n_rows >= n_in rows), runs body(p_load, p_store, load,
-  store) per lane, writes P back (in place with in_place) and the first n_out rows of aux out. Returns (P packed
-  [B, 121], out [n_out, B_padded])."""
+  vehicles' P rows and aux columns into shared memory (aux into the first n_in of n_rows >= n_in rows), runs
+  body(p_load, p_store, load, store) per lane, writes P back (in place with in_place) and the aux rows out_rows out:
+  an int n (rows [0, n)) or ((start, count), ...), copied one after the other. Returns (P packed [B, 121], out
+  [sum of the counts, B_padded])."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
   bp = -(-nb // LANES) * LANES
   f32 = jnp.float32
   Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
-  aux = jnp.pad(aux, ((0, n_rows - aux.shape[0]), (0, bp - nb)))
+  n_in = aux.shape[0]
+  aux = jnp.pad(aux, ((0, 0), (0, bp - nb)))
+  segments = ((0, out_rows),) if isinstance(out_rows, int) else tuple(out_rows)
+  n_out = sum(c for _, c in segments)
 
   def kernel(p_gmem, aux_gmem, *refs):
     *po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar = refs
@@ -340,7 +344,7 @@ def _lanes_call(P, aux, n_rows, n_out, body, in_place):
     b = jax.lax.axis_index("b")
     blk = pl.ds(b * LANES, LANES)
     plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(b * N_PACKED, N_PACKED)], p_smem, p_bar)
-    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem.at[pl.ds(0, n_in)], aux_bar)
     p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] view
     plgpu.barrier_wait(p_bar)
     plgpu.barrier_wait(aux_bar)
@@ -354,7 +358,10 @@ def _lanes_call(P, aux, n_rows, n_out, body, in_place):
     body(lambda i, j: p_vm[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux_smem[k], store)
     plgpu.commit_smem()
     plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
-    plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(0, n_out)], out_gmem.at[:, blk])
+    dst = 0
+    for start, count in segments:
+      plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(start, count)], out_gmem.at[pl.ds(dst, count), blk])
+      dst += count
     plgpu.wait_smem_to_gmem(0)
 
   out_type = jax.ShapeDtypeStruct((n_out, bp), f32)
@@ -387,6 +394,8 @@ def resets_of(cfg):
 # in one concatenate fusion, every row re-deriving its value from ~10 operands (rover profile, session 39: 24 us of
 # that fusion per tick against the kernel's 47).
 
+# prep_tick's default form (`PrepLayout`): the prepared inputs through shared memory (True) or held in registers
+PREP_TO_SMEM = True
 _PREP_IN = (("quat", 4), ("vel", 3), ("pos", 3), ("gb", 3), ("ab", 3), ("gyro", 3), ("accel", 3), ("z", N_ROWS),
             ("en", N_ROWS), ("due", 3))
 _PREP_OUT = (("dx", N_ERR), ("ratio", N_ROWS), ("acc", N_ROWS), ("innov", N_ROWS), ("pos", 3), ("vel", 3),
@@ -402,19 +411,30 @@ def _offsets(fields):
 
 
 class PrepLayout:
-  """Rows of `prep_tick`'s inputs in aux and of its outputs over them.
+  """Rows of `prep_tick`'s inputs in aux and of its outputs over them (the kernel's out block: `out_rows`).
 
   in (`_PREP_IN`): quat [4], vel [3], pos [3], gyro_bias [3], accel_bias [3] (the nominal state before the tick),
   gyro [3], accel [3] (the IMU sample, unclipped), z [13] (`ekf._measurement_rows`), enable [13] (1.0 / 0.0, the flow
   rows before the predicted-height check), due [3]. out (`_PREP_OUT`): dx [15], ratio [13], accept [13] (1.0 / 0.0),
-  innov [13] (before the gates), the predicted pos [3], vel [3], quat [4]."""
+  innov [13] (before the gates), the predicted pos [3], vel [3], quat [4].
+  to_smem (`prep_body`): the prepared inputs are written over the raw ones as `Layout(spec)` places them and the extra
+  outputs (innov onwards) go to the rows after that block, so the tick reads them from shared memory as `cov_tick`'s
+  kernel does (keeping them in registers through the tick instead may spill)."""
 
-  def __init__(self):
+  def __init__(self, spec, to_smem: bool):
     self.inp, self.n_in = _offsets(_PREP_IN)
     out, self.n_out = _offsets(_PREP_OUT)
     self.dx, self.ratio, self.acc = out["dx"], out["ratio"], out["acc"]
     self.out = out
-    self.n_rows = max(self.n_in, self.n_out)
+    n_main = out["innov"]                                   # dx, ratio, accept
+    if to_smem:
+      base = Layout(spec).n_aux
+      self.extra = {name: base + out[name] - n_main for name, _ in _PREP_OUT[3:]}
+      self.out_rows = ((0, n_main), (base, self.n_out - n_main))
+    else:
+      self.extra = {name: out[name] for name, _ in _PREP_OUT[3:]}
+      self.out_rows = ((0, self.n_out),)
+    self.n_rows = max(self.n_in, max(s + c for s, c in self.out_rows))
 
 
 def _sqrt(x):
@@ -507,16 +527,37 @@ def prep_inputs(spec, flow_min_height: float, x: dict):
   return inputs, innov, pos, vel, quat
 
 
-def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store):
+def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem: bool = False):
   """The tick with its inputs prepared per lane (`prep_inputs`), then `tick_body`; loads and stores as
-  `tick_body`'s, rows as `PrepLayout` places them."""
-  lay = PrepLayout()
+  `tick_body`'s, rows as `PrepLayout(spec, to_smem)` places them. to_smem: the prepared inputs are stored as
+  `Layout` places them and `tick_body` loads them back when it needs them (a load after a store: the kernel's
+  shared memory, or a dict standing in for it)."""
+  lay = PrepLayout(spec, to_smem)
   x = {name: [load(lay.inp[name] + k) for k in range(size)] for name, size in _PREP_IN}
   inputs, innov, pos, vel, quat = prep_inputs(spec, flow_min_height, x)
+  extra = (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat))
+  if to_smem:
+    o = Layout(spec)
+    for i in range(3):
+      for m in range(3):
+        store(o.A + 3 * i + m, inputs["A"][i][m])
+        store(o.B + 3 * i + m, inputs["B"][i][m])
+    for e, (i, c) in enumerate(spec.h_entries()):
+      store(o.H + e, inputs["hd"][i][c])
+    for i in range(N_ROWS):
+      store(o.innov + i, innov[i])
+      store(o.en + i, jnp.where(inputs["enable"][i], 1.0, 0.0))
+    for b in range(3):
+      store(o.due + b, jnp.where(inputs["due"][b], 1.0, 0.0))
+    for name, vals in extra:
+      for k, v in enumerate(vals):
+        store(lay.extra[name] + k, v)
+    tick_body(spec, resets, p_load, p_store, load, store)
+    return
   tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
-  for name, vals in (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat)):
+  for name, vals in extra:
     for k, v in enumerate(vals):
-      store(lay.out[name] + k, v)
+      store(lay.extra[name] + k, v)
 
 
 def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due):
@@ -526,51 +567,53 @@ def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due
 
 
 def _unpack_prep(out, nb):
-  """out [>= 64, >= B] -> (dx, ratio, accept bool, innov, pos, vel, quat), each [B, ...]."""
-  lay = PrepLayout()
-  o = out[:lay.n_out, :nb].T
+  """out [64, >= B] (rows `_PREP_OUT`) -> (dx, ratio, accept bool, innov, pos, vel, quat), each [B, ...]."""
+  offsets, n_out = _offsets(_PREP_OUT)
+  o = out[:n_out, :nb].T
   res = []
   for name, size in _PREP_OUT:
-    v = o[:, lay.out[name]:lay.out[name] + size]
+    v = o[:, offsets[name]:offsets[name] + size]
     res.append(v > 0.5 if name == "acc" else v)
   return tuple(res)
 
 
 @_packed_io
-def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float):
-  """`prep_body` in plain JAX over [B] vectors (tests, the CPU). Arguments and results as `prep_tick`'s."""
-  aux = pack_prep(*inputs)
-  p_out, out = dict(enumerate(P.T)), {}
+def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float, to_smem: bool = False):
+  """`prep_body` in plain JAX over [B] vectors (tests, the CPU), aux rows in a dict standing in for shared memory.
+  Arguments and results as `prep_tick`'s."""
+  mem = dict(enumerate(pack_prep(*inputs)))
+  p_out = dict(enumerate(P.T))
 
   def p_store(i, j, v):
     p_out[TRI_INDEX[(i, j)]] = v
 
-  prep_body(spec, resets, flow_min_height, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux[k],
-            out.__setitem__)
+  prep_body(spec, resets, flow_min_height, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, mem.__getitem__,
+            mem.__setitem__, to_smem)
   nb = P.shape[0]
-  o = jnp.stack([jnp.broadcast_to(out[k], (nb,)) for k in range(PrepLayout().n_out)])
+  rows = [k for start, count in PrepLayout(spec, to_smem).out_rows for k in range(start, start + count)]
+  o = jnp.stack([jnp.broadcast_to(mem[k], (nb,)) for k in rows])
   return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1), *_unpack_prep(o, nb))
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "resets", "flow_min_height", "in_place"))
+@functools.partial(jax.jit, static_argnames=("spec", "resets", "flow_min_height", "to_smem", "in_place"))
 @_packed_io
 def prep_tick(spec, resets, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due, *,
-              flow_min_height: float, in_place: bool = IN_PLACE):
+              flow_min_height: float, to_smem: bool = PREP_TO_SMEM, in_place: bool = IN_PLACE):
   """The whole EKF tick but the injection and the records as one Mosaic GPU kernel: the nominal state's prediction,
   H, the innovations (`prep_inputs`) and `cov_tick`'s covariance work, per lane.
 
   P: [B, 121] packed (or any layout, returned in it). quat [B, 4], vel, pos, gyro_bias, accel_bias [B, 3]: the
   nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf._measurement_rows`; enable
   [B, 13] bool (the flow rows before the predicted-height check); due [B, 3] bool; flow_min_height: the EKF
-  config's (m). Returns (P, dx [B, 15], ratio
+  config's (m); to_smem: see `PrepLayout`. Returns (P, dx [B, 15], ratio
   [B, 13], accept [B, 13] bool, innov [B, 13] before the gates, pos [B, 3], vel [B, 3], quat [B, 4] predicted)."""
-  lay = PrepLayout()
+  lay = PrepLayout(spec, to_smem)
 
   @jax.custom_batching.custom_vmap
   def call(P, *args):
     def body(p_load, p_store, load, store):
-      prep_body(spec, resets, flow_min_height, p_load, p_store, load, store)
-    Po, out = _lanes_call(P, pack_prep(*args), lay.n_rows, lay.n_out, body, in_place)
+      prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem)
+    Po, out = _lanes_call(P, pack_prep(*args), lay.n_rows, lay.out_rows, body, in_place)
     return (Po, *_unpack_prep(out, P.shape[0]))
 
   @call.def_vmap
