@@ -16,6 +16,12 @@ odd stride (conflict-free); P written back in place. The other inputs vehicle-mi
 fusion of XLA's), the outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
 vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
 
+`prep_tick` (what `ekf.ekf_step` runs with fused="lanes"): the same kernel with the tick's inputs prepared per lane
+too: the nominal state's prediction, F's blocks, H and the innovations from the state and the readings
+(`prep_inputs`, the arithmetic of ekf._predict_nominal / ekf._innovations), so XLA hands the kernel 51 rows of
+state and reading components instead of deriving `pack_aux`'s 69-75 rows (each row of that concatenate fusion
+re-derived its value from ~10 operands: 24 us per rover tick at 65,536 vehicles, session 39's profile).
+
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
 and Triton did not compile this straight-line form in 9 minutes (session 11); jax 0.11's default Warpgroup semantics
 did not in 285 s (its layout inference grows faster than linearly with the kernel's length, session 34), where Lane
