@@ -664,12 +664,50 @@ def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, s
   return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale, batched)
 
 
-def _cov_tick_lanes(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple):
-  """`_cov_tick` for one vehicle whose vmap runs `ekf_lanes.cov_tick` (one Mosaic GPU kernel for the whole batch,
-  one vehicle per lane). P in any layout, returned in it; the kernel's own, "packed", passes through untouched."""
+@struct.dataclass
+class _Nominal:
+  """The nominal state's fields `_predict_nominal` and `_innovations` read (an EKFState's, without P and records)."""
+  pos: jnp.ndarray
+  vel: jnp.ndarray
+  quat: jnp.ndarray
+  gyro_bias: jnp.ndarray
+  accel_bias: jnp.ndarray
+
+
+def _tick_lanes_prep(cfg: EKFConfig, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due,
+                     dt: float, stale: tuple):
+  """One vehicle's tick but the injection and the records (the prediction, H, the innovations and the covariance
+  work) whose vmap runs `ekf_lanes.prep_tick` (one Mosaic GPU kernel for the batch, its inputs prepared per lane).
+  enable [13] bool: the flow rows before the predicted-height check. Unbatched: the XLA form. Returns (P, dx [15],
+  ratio [13], accept [13] bool, innov [13] before the gates, the predicted pos [3], vel [3], quat [4])."""
   from specguard_jax import ekf_lanes
-  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale,
-                           lambda spec, *args: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *args))
+  spec = _cov_spec(cfg, dt, stale)
+
+  @jax.custom_batching.custom_vmap
+  def tick(*args):
+    return _tick_prep_xla(cfg, dt, stale, *args)
+
+  @tick.def_vmap
+  def _(axis_size, in_batched, *args):
+    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
+    return (ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *args, flow_min_height=float(cfg.flow_min_height)),
+            (True,) * 8)
+
+  return tick(P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due)
+
+
+def _tick_prep_xla(cfg: EKFConfig, dt: float, stale: tuple, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z,
+                   enable, due):
+  """`_tick_lanes_prep` for one vehicle in XLA (the reference; arguments and results as its)."""
+  noise, gate = _noise_and_gates(cfg)
+  s, A, B = _predict_nominal(cfg, _Nominal(pos=pos, vel=vel, quat=quat, gyro_bias=gyro_bias, accel_bias=accel_bias),
+                             gyro, accel, dt)
+  rows = jnp.arange(N_ROWS)
+  enable = enable & jnp.where((rows == 8) | (rows == 9), s.pos[2] >= cfg.flow_min_height, True)
+  innov, H = _innovations(cfg, s, z)
+  P, dx, ratio, accept = _cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), enable,
+                                   due, stale, unrolled=True)
+  return P, dx, ratio, accept, innov, s.pos, s.vel, s.quat
 
 
 def reset_block(P, idx, var, do):
@@ -735,35 +773,47 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
   fused: under vmap, run the covariance work as one GPU kernel for the batch (dt must be a Python float; GPU only):
   True or "triton" the Triton tile kernel (`ekf_kernel`, P "padded" [16, 16]); "lanes" the per-lane Mosaic GPU
-  kernel (`ekf_lanes`, NVIDIA Hopper or newer, P best kept "packed"). "interpret": the Triton kernel through Pallas'
+  kernel (`ekf_lanes.prep_tick`, NVIDIA Hopper or newer, P best kept "packed"), which computes the prediction, H
+  and the innovations too (`_tick_lanes_prep`). "interpret": the Triton kernel through Pallas'
   interpreter (tests, on the CPU). The same filter every way (to float32 rounding), P in any layout.
   records: False leaves the per-channel records (innov, test_ratio, accepted, fresh) as `state` holds them, for a
   filter whose records nobody reads (static; the env's `EnvConfig.ekf_records`): the same filter otherwise, three
   [11]-float selects and a write fewer per tick (on an H200 at 65,536 envs ~0.1 / ~0.45 ms per drone / rover env step
   of 5 ticks, BENCHMARKS.md session 38).
   """
-  s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
   f32 = jnp.float32
   gps = (readings.gps_fresh > 0.5) & ("gps" not in stale)
   baro = readings.baro_fresh > 0.5
   mag = readings.mag_fresh > 0.5
-  flow = (readings.flow_fresh > 0.5) & (s.pos[2] >= cfg.flow_min_height) & cfg.use_flow
+  flow_pre = (readings.flow_fresh > 0.5) & cfg.use_flow       # before the predicted-height check
   odom = (readings.odom_fresh > 0.5) & cfg.use_odom
   nhc = (readings.odom_fresh > 0.5) & cfg.use_nhc
-  fresh = jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
-  enable = with_component(fresh, 2, gps & cfg.fuse_gps_height)
+
+  def fresh_rows(flow):
+    return jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
+
   z, noise, gate = _measurement_rows(cfg, readings)
-  innov, H = _innovations(cfg, s, z)
   # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
   ages = jnp.stack([state.gps_pos_age, state.gps_vel_age, state.hgt_age]) + dt
   due = jnp.stack([gps, gps, baro]) & (ages > cfg.reset_timeout)
-  if fused == "lanes":
-    P, dx, ratio, accept = _cov_tick_lanes(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale))
-  elif fused:
-    P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale),
-                                           interpret=fused == "interpret")
+  if fused == "lanes":   # the prediction, H and the innovations in the kernel too
+    enable = with_component(fresh_rows(flow_pre), 2, gps & cfg.fuse_gps_height)
+    P, dx, ratio, accept, innov, pos, vel, quat = _tick_lanes_prep(
+      cfg, state.P, state.quat, state.vel, state.pos, state.gyro_bias, state.accel_bias, readings.gyro,
+      readings.accel, z, enable, due, dt, tuple(stale))
+    s = state.replace(pos=pos, vel=vel, quat=quat)
+    fresh = fresh_rows(flow_pre & (s.pos[2] >= cfg.flow_min_height))
   else:
-    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due, tuple(stale))
+    s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
+    fresh = fresh_rows(flow_pre & (s.pos[2] >= cfg.flow_min_height))
+    enable = with_component(fresh, 2, gps & cfg.fuse_gps_height)
+    innov, H = _innovations(cfg, s, z)
+    if fused:
+      P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale),
+                                             interpret=fused == "interpret")
+    else:
+      P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due,
+                                       tuple(stale))
   s = _inject(cfg, s.replace(P=P), dx)
 
   # per-channel records (held while a channel is not fresh)

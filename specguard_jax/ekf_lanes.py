@@ -16,6 +16,14 @@ odd stride (conflict-free); P written back in place. The other inputs vehicle-mi
 fusion of XLA's), the outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
 vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
 
+`prep_tick` (what `ekf.ekf_step` runs with fused="lanes"): the same kernel with the tick's inputs prepared per lane
+too: the nominal state's prediction, F's blocks, H and the innovations from the state and the readings
+(`prep_inputs`, the arithmetic of ekf._predict_nominal / ekf._innovations), so XLA hands the kernel 51 rows of
+state and reading components instead of deriving `pack_aux`'s 69-75 rows (each row of that concatenate fusion
+re-derived its value from ~10 operands: 24 us per rover tick at 65,536 vehicles, session 39's profile). The
+trainer's env step at 65,536 envs on one H200 (session 40): rover 1.986 ms against 2.067 with `cov_tick`, drone 2.773
+against 2.798.
+
 Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
 and Triton did not compile this straight-line form in 9 minutes (session 11); jax 0.11's default Warpgroup semantics
 did not in 285 s (its layout inference grows faster than linearly with the kernel's length, session 34), where Lane
@@ -61,7 +69,20 @@ class Layout:
     self.n_out = N_ERR + 2 * N_ROWS
 
 
-def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
+def _layout_inputs(spec, load):
+  """The tick's inputs besides P from aux rows placed as `Layout` places them: dict(A, B [3][3], hd {row: {col: h}},
+  innov [13], enable [13] bool, due [3] bool), every value a [lanes] vector."""
+  o = Layout(spec)
+  hd = {}
+  for e, (i, c) in enumerate(spec.h_entries()):
+    hd.setdefault(i, {})[c] = load(o.H + e)
+  return dict(A=[[load(o.A + 3 * i + m) for m in range(3)] for i in range(3)],
+              B=[[load(o.B + 3 * i + m) for m in range(3)] for i in range(3)], hd=hd,
+              innov=[load(o.innov + i) for i in range(N_ROWS)], enable=[load(o.en + i) > 0.5 for i in range(N_ROWS)],
+              due=[load(o.due + b) > 0.5 for b in range(3)])
+
+
+def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", inputs=None, o=None):
   """The per-lane covariance tick as straight-line code on [lanes] vectors (one vehicle per lane).
 
   p_load(i, j) -> P[i, j] and p_store(i, j, v) sets P[i, j] and P[j, i], both for i <= j; load(k) -> entry k of aux,
@@ -69,9 +90,11 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   before the first store, so P and out may overwrite their inputs in place (the kernel's shared memory does).
   resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
   stage: "full" (the tick), or a probe for compile and run time (bench/ekf_lanes.py): "predict" (the prediction and
-  its clamps alone, the other outputs zero) or "copy" (P and out copied from P and the first rows of aux)."""
+  its clamps alone, the other outputs zero) or "copy" (P and out copied from P and the first rows of aux).
+  inputs: the inputs besides P as `_layout_inputs` returns them (default: loaded from `Layout`'s rows); o: where the
+  outputs go (attributes dx, ratio, acc, n_out; default `Layout(spec)`)."""
   n = N_ERR
-  o = Layout(spec)
+  o = Layout(spec) if o is None else o
   tri = [p_load(i, j) for (i, j) in TRI]
   if stage == "copy":      # memory floor: every output row from an input row
     for k, (i, j) in enumerate(TRI):
@@ -80,8 +103,8 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
       store(k, load(k) * 1.0)
     return
   P = [[tri[tri_index(i, j)] for j in range(n)] for i in range(n)]
-  A = [[load(o.A + 3 * i + m) for m in range(3)] for i in range(3)]
-  B = [[load(o.B + 3 * i + m) for m in range(3)] for i in range(3)]
+  inputs = _layout_inputs(spec, load) if inputs is None else inputs
+  A, B = inputs["A"], inputs["B"]
   dt = spec.dt
 
   # ---- prediction (ekf._predict_cov): FP = P + E P, X = FP + FP E', + Q, then _condition with symmetrisation
@@ -132,15 +155,13 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
   if stage == "predict":   # compile-size probe: the prediction alone
     for (i, j) in TRI:
       p_store(i, j, P[i][j])
-    zero = load(o.innov) * 0.0
+    zero = inputs["innov"][0] * 0.0
     for r in range(o.n_out):
       store(r, zero)
     return
 
   # ---- gates (ekf._gate) and low-rank sequential fusion (ekf._rows_unrolled)
-  hd = {}
-  for e, (i, c) in enumerate(spec.h_entries()):
-    hd.setdefault(i, {})[c] = load(o.H + e)
+  hd = inputs["hd"]
   used = [i for i in range(N_ROWS) if spec.used[i]]
 
   def hdot(i, v):   # h_i . v, v indexable by error-state column
@@ -150,8 +171,7 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
     return t
 
   PHt = {i: [hdot(i, [P[c][r] for c in range(n)]) for r in range(n)] for i in used}
-  innov = [load(o.innov + i) for i in range(N_ROWS)]
-  enable = [load(o.en + i) > 0.5 for i in range(N_ROWS)]
+  innov, enable = inputs["innov"], inputs["enable"]
   ratio, bad = [], []
   for i in range(N_ROWS):
     S = hdot(i, PHt[i]) + spec.R[i] if i in PHt else spec.R[i] + 0.0 * innov[i]
@@ -193,7 +213,7 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full"):
     fused = fl[0]
     for f in fl[1:]:
       fused = (fused & f) if how == "all" else (fused | f)
-    do = (load(o.due + b) > 0.5) & ~fused
+    do = inputs["due"][b] & ~fused
     for c in cols:
       cleared[c] = do
       new_var[c] = jnp.where(do, var, 0.0)
@@ -300,14 +320,31 @@ def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", 
 
 def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
   """cov_tick's kernel call on P packed [B, 121] (B unbatched: one flat batch)."""
+  lay = Layout(spec)
+
+  def body(p_load, p_store, load, store):
+    tick_body(spec, resets, p_load, p_store, load, store, stage)
+
+  Po, out = _lanes_call(P, pack_aux(spec, A, B, H, innov, enable, due), lay.n_aux, lay.n_out, body, in_place)
+  return (Po, *_unpack_out(out, P.shape[0], spec))
+
+
+def _lanes_call(P, aux, n_rows, out_rows, body, in_place):
+  """One Mosaic GPU kernel over P packed [B, 121] and aux [n_in, B] (vehicle-minor): each program copies its 128
+  vehicles' P rows and aux columns into shared memory (aux into the first n_in of n_rows >= n_in rows), runs
+  body(p_load, p_store, load, store) per lane, writes P back (in place with in_place) and the aux rows out_rows out:
+  an int n (rows [0, n)) or ((start, count), ...), copied one after the other. Returns (P packed [B, 121], out
+  [sum of the counts, B_padded])."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
   bp = -(-nb // LANES) * LANES
-  lay = Layout(spec)
   f32 = jnp.float32
   Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
-  aux = jnp.pad(pack_aux(spec, A, B, H, innov, enable, due), ((0, 0), (0, bp - nb)))
+  n_in = aux.shape[0]
+  aux = jnp.pad(aux, ((0, 0), (0, bp - nb)))
+  segments = ((0, out_rows),) if isinstance(out_rows, int) else tuple(out_rows)
+  n_out = sum(c for _, c in segments)
 
   def kernel(p_gmem, aux_gmem, *refs):
     *po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar = refs
@@ -315,7 +352,7 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
     b = jax.lax.axis_index("b")
     blk = pl.ds(b * LANES, LANES)
     plgpu.copy_gmem_to_smem(p_gmem.at[pl.ds(b * N_PACKED, N_PACKED)], p_smem, p_bar)
-    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem, aux_bar)
+    plgpu.copy_gmem_to_smem(aux_gmem.at[:, blk], aux_smem.at[pl.ds(0, n_in)], aux_bar)
     p_vm = p_smem.reshape(LANES * N_PACKED).reshape(LANES, N_PACKED)     # [vehicle, entry] view
     plgpu.barrier_wait(p_bar)
     plgpu.barrier_wait(aux_bar)
@@ -326,17 +363,20 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
     def store(k, v):
       aux_smem[k] = v
 
-    tick_body(spec, resets, lambda i, j: p_vm[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux_smem[k], store, stage)
+    body(lambda i, j: p_vm[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux_smem[k], store)
     plgpu.commit_smem()
     plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
-    plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(0, lay.n_out)], out_gmem.at[:, blk])
+    dst = 0
+    for start, count in segments:
+      plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(start, count)], out_gmem.at[pl.ds(dst, count), blk])
+      dst += count
     plgpu.wait_smem_to_gmem(0)
 
-  out_type = jax.ShapeDtypeStruct((lay.n_out, bp), f32)
+  out_type = jax.ShapeDtypeStruct((n_out, bp), f32)
   call = plgpu.kernel(
     kernel, out_type=out_type if in_place else (jax.ShapeDtypeStruct(Pg.shape, f32), out_type),
     grid=(bp // LANES,), grid_names=("b",),
-    scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((lay.n_aux, LANES), f32),
+    scratch_types=[plgpu.SMEM((N_PACKED, LANES), f32), plgpu.SMEM((n_rows, LANES), f32),
                    plgpu.Barrier(num_arrivals=1), plgpu.Barrier(num_arrivals=1)],
     compiler_params=plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane))
   if in_place:    # P's buffer written in place (the custom call aliases it: no copy of P after the kernel)
@@ -345,7 +385,7 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
     Po = jax.freeze(p_ref)
   else:
     Po, out = call(Pg, aux)
-  return (Po.reshape(bp, N_PACKED)[:nb], *_unpack_out(out, nb, spec))
+  return Po.reshape(bp, N_PACKED)[:nb], out
 
 
 def resets_of(cfg):
@@ -353,3 +393,243 @@ def resets_of(cfg):
   from specguard_jax import ekf as ekf_lib
   return tuple((tuple(cols), tuple(rows), how, float(v))
                for (cols, rows, how), v in zip(ekf_lib._RESETS, ekf_lib._reset_variances(cfg)))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The tick with its inputs prepared in the kernel: F's blocks, H and the innovations computed per lane from the
+# nominal state and the readings (what ekf._predict_nominal and ekf._innovations do in XLA). The kernel's input block
+# is then 51 rows, each a copy of one state or reading component, where `cov_tick`'s is 69-75 rows that XLA computes
+# in one concatenate fusion, every row re-deriving its value from ~10 operands (rover profile, session 39: 24 us of
+# that fusion per tick against the kernel's 47).
+
+# prep_tick's default form (`PrepLayout`): the prepared inputs held in registers (False) or through shared memory
+# (True). One H200, 65,536 envs, the trainer's env (session 40, bench/env_step_ab.py, ms per step): rover 1.986 in
+# registers, 2.003 through shared memory, 2.066-2.068 with `cov_tick`; drone 2.773 / 2.798 / 2.797-2.799.
+PREP_TO_SMEM = False
+_PREP_IN = (("quat", 4), ("vel", 3), ("pos", 3), ("gb", 3), ("ab", 3), ("gyro", 3), ("accel", 3), ("z", N_ROWS),
+            ("en", N_ROWS), ("due", 3))
+_PREP_OUT = (("dx", N_ERR), ("ratio", N_ROWS), ("acc", N_ROWS), ("innov", N_ROWS), ("pos", 3), ("vel", 3),
+             ("quat", 4))
+
+
+def _offsets(fields):
+  out, k = {}, 0
+  for name, size in fields:
+    out[name] = k
+    k += size
+  return out, k
+
+
+class PrepLayout:
+  """Rows of `prep_tick`'s inputs in aux and of its outputs over them (the kernel's out block: `out_rows`).
+
+  in (`_PREP_IN`): quat [4], vel [3], pos [3], gyro_bias [3], accel_bias [3] (the nominal state before the tick),
+  gyro [3], accel [3] (the IMU sample, unclipped), z [13] (`ekf._measurement_rows`), enable [13] (1.0 / 0.0, the flow
+  rows before the predicted-height check), due [3]. out (`_PREP_OUT`): dx [15], ratio [13], accept [13] (1.0 / 0.0),
+  innov [13] (before the gates), the predicted pos [3], vel [3], quat [4].
+  to_smem (`prep_body`): the prepared inputs are written over the raw ones as `Layout(spec)` places them and the extra
+  outputs (innov onwards) go to the rows after that block, so the tick reads them from shared memory as `cov_tick`'s
+  kernel does (keeping them in registers through the tick instead may spill)."""
+
+  def __init__(self, spec, to_smem: bool):
+    self.inp, self.n_in = _offsets(_PREP_IN)
+    out, self.n_out = _offsets(_PREP_OUT)
+    self.dx, self.ratio, self.acc = out["dx"], out["ratio"], out["acc"]
+    self.out = out
+    n_main = out["innov"]                                   # dx, ratio, accept
+    if to_smem:
+      base = Layout(spec).n_aux
+      self.extra = {name: base + out[name] - n_main for name, _ in _PREP_OUT[3:]}
+      self.out_rows = ((0, n_main), (base, self.n_out - n_main))
+    else:
+      self.extra = {name: out[name] for name, _ in _PREP_OUT[3:]}
+      self.out_rows = ((0, self.n_out),)
+    self.n_rows = max(self.n_in, max(s + c for s, c in self.out_rows))
+
+
+def _sqrt(x):
+  """sqrt(x) for x > 0 as x rsqrt(x) (jax 0.10's Mosaic GPU lowers rsqrt, not sqrt); NaN at 0 and inf, where
+  its callers fall back as they do for sqrt's 0 and inf."""
+  return x * jax.lax.rsqrt(x)
+
+
+def _q_mul(a, b):
+  aw, ax, ay, az = a
+  bw, bx, by, bz = b
+  return [aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+          aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw]
+
+
+def _q_rotvec(v):
+  """ekf._rotvec_to_quat on components."""
+  a2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+  small = a2 < 1e-8
+  a = _sqrt(jnp.where(small, 1.0, a2))
+  s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
+  c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
+  return [c, s * v[0], s * v[1], s * v[2]]
+
+
+def _q_normalize(q):
+  """ekf._normalize_quat on components."""
+  n = _sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+  ok = _finite(n) & (n > 1e-6)
+  d = jnp.where(ok, n, 1.0)
+  return [jnp.where(ok, x / d, unit) for x, unit in zip(q, (1.0, 0.0, 0.0, 0.0))]
+
+
+def _q_rot(q):
+  """math3d.quat_to_rot on components: [3][3]."""
+  w, x, y, z = q
+  return [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+
+
+def prep_inputs(spec, flow_min_height: float, x: dict):
+  """ekf._predict_nominal and ekf._innovations per lane. x: the `PrepLayout` inputs by name, lists of [lanes]
+  vectors. Returns (the inputs of `tick_body` as `_layout_inputs` gives them, the innovations before the gates [13],
+  the predicted pos [3], vel [3], quat [4])."""
+  from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
+  dt = spec.dt
+  w = [jnp.clip(g, -GYRO_RANGE, GYRO_RANGE) - b for g, b in zip(x["gyro"], x["gb"])]
+  a = [jnp.clip(f, -ACCEL_RANGE, ACCEL_RANGE) - b for f, b in zip(x["accel"], x["ab"])]
+  q0 = x["quat"]
+  quat = _q_normalize(_q_mul(q0, _q_rotvec([c * dt for c in w])))
+  rm = _q_rot(_q_mul(q0, _q_rotvec([0.5 * c * dt for c in w])))
+  ra = [rm[i][0] * a[0] + rm[i][1] * a[1] + rm[i][2] * a[2] for i in range(3)]
+  acc_w = [ra[0], ra[1], ra[2] - GRAVITY]
+  pos = [p + v * dt + 0.5 * c * dt * dt for p, v, c in zip(x["pos"], x["vel"], acc_w)]
+  vel = [v + c * dt for v, c in zip(x["vel"], acc_w)]
+  zero = 0.0 * ra[0]
+  A = [[zero, ra[2] * dt, -ra[1] * dt], [-ra[2] * dt, zero, ra[0] * dt], [ra[1] * dt, -ra[0] * dt, zero]]
+  B = [[-rm[i][m] * dt for m in range(3)] for i in range(3)]
+
+  # ekf._linearise at the predicted state
+  r = _q_rot(quat)
+  vb = [r[0][c] * vel[0] + r[1][c] * vel[1] + r[2][c] * vel[2] for c in range(3)]
+  hgt = jnp.maximum(pos[2], flow_min_height)
+  yaw = jnp.arctan2(r[1][0], r[0][0])
+  pred = pos + vel + [pos[2], yaw, vb[0] / hgt, vb[1] / hgt, vb[0], vb[1], vb[2]]
+  col = [[r[0][k], r[1][k], r[2][k]] for k in range(3)]                       # dvb / dvel, row k
+  dth = [[c[1] * vel[2] - c[2] * vel[1], c[2] * vel[0] - c[0] * vel[2], c[0] * vel[1] - c[1] * vel[0]]
+         for c in col]                                                           # dvb / dtheta, row k
+  nrm = r[0][0] * r[0][0] + r[1][0] * r[1][0]
+  dyaw = [-r[0][0] * r[2][0] / nrm, -r[1][0] * r[2][0] / nrm]
+  dhgt = jnp.where(pos[2] > flow_min_height, 1.0, jnp.where(pos[2] == flow_min_height, 0.5, 0.0))
+  H = {i: {i: 1.0} for i in range(6)}
+  H[6] = {2: 1.0}
+  H[7] = {6: dyaw[0], 7: dyaw[1], 8: 1.0 + zero}
+  for k in range(2):
+    H[8 + k] = {2: -vb[k] / (hgt * hgt) * dhgt, **{3 + m: col[k][m] / hgt for m in range(3)},
+                **{6 + m: dth[k][m] / hgt for m in range(3)}}
+  for k in range(3):
+    H[10 + k] = {**{3 + m: col[k][m] for m in range(3)}, **{6 + m: dth[k][m] for m in range(3)}}
+  hd = {}
+  for i, c in spec.h_entries():
+    h = H[i][c]
+    hd.setdefault(i, {})[c] = h + zero if isinstance(h, float) else h
+  innov = [zi - pi for zi, pi in zip(x["z"], pred)]
+  innov[7] = jnp.arctan2(jnp.sin(innov[7]), jnp.cos(innov[7]))
+  low_ok = pos[2] >= flow_min_height
+  enable = [(e > 0.5) & low_ok if i in (8, 9) else e > 0.5 for i, e in enumerate(x["en"])]
+  inputs = dict(A=A, B=B, hd=hd, innov=innov, enable=enable, due=[d > 0.5 for d in x["due"]])
+  return inputs, innov, pos, vel, quat
+
+
+def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem: bool = False):
+  """The tick with its inputs prepared per lane (`prep_inputs`), then `tick_body`; loads and stores as
+  `tick_body`'s, rows as `PrepLayout(spec, to_smem)` places them. to_smem: the prepared inputs are stored as
+  `Layout` places them and `tick_body` loads them back when it needs them (a load after a store: the kernel's
+  shared memory, or a dict standing in for it)."""
+  lay = PrepLayout(spec, to_smem)
+  x = {name: [load(lay.inp[name] + k) for k in range(size)] for name, size in _PREP_IN}
+  inputs, innov, pos, vel, quat = prep_inputs(spec, flow_min_height, x)
+  extra = (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat))
+  if to_smem:
+    o = Layout(spec)
+    for i in range(3):
+      for m in range(3):
+        store(o.A + 3 * i + m, inputs["A"][i][m])
+        store(o.B + 3 * i + m, inputs["B"][i][m])
+    for e, (i, c) in enumerate(spec.h_entries()):
+      store(o.H + e, inputs["hd"][i][c])
+    for i in range(N_ROWS):
+      store(o.innov + i, innov[i])
+      store(o.en + i, jnp.where(inputs["enable"][i], 1.0, 0.0))
+    for b in range(3):
+      store(o.due + b, jnp.where(inputs["due"][b], 1.0, 0.0))
+    for name, vals in extra:
+      for k, v in enumerate(vals):
+        store(lay.extra[name] + k, v)
+    tick_body(spec, resets, p_load, p_store, load, store)
+    return
+  tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
+  for name, vals in extra:
+    for k, v in enumerate(vals):
+      store(lay.extra[name] + k, v)
+
+
+def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due):
+  """`prep_tick`'s inputs [B, ...] -> aux [51, B] float32 vehicle-minor (rows as `PrepLayout` places them)."""
+  parts = (quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due)
+  return jnp.concatenate([jnp.asarray(p).astype(jnp.float32) for p in parts], axis=1).T
+
+
+def _unpack_prep(out, nb):
+  """out [64, >= B] (rows `_PREP_OUT`) -> (dx, ratio, accept bool, innov, pos, vel, quat), each [B, ...]."""
+  offsets, n_out = _offsets(_PREP_OUT)
+  o = out[:n_out, :nb].T
+  res = []
+  for name, size in _PREP_OUT:
+    v = o[:, offsets[name]:offsets[name] + size]
+    res.append(v > 0.5 if name == "acc" else v)
+  return tuple(res)
+
+
+@_packed_io
+def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float, to_smem: bool = False):
+  """`prep_body` in plain JAX over [B] vectors (tests, the CPU), aux rows in a dict standing in for shared memory.
+  Arguments and results as `prep_tick`'s."""
+  mem = dict(enumerate(pack_prep(*inputs)))
+  p_out = dict(enumerate(P.T))
+
+  def p_store(i, j, v):
+    p_out[TRI_INDEX[(i, j)]] = v
+
+  prep_body(spec, resets, flow_min_height, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, mem.__getitem__,
+            mem.__setitem__, to_smem)
+  nb = P.shape[0]
+  rows = [k for start, count in PrepLayout(spec, to_smem).out_rows for k in range(start, start + count)]
+  o = jnp.stack([jnp.broadcast_to(mem[k], (nb,)) for k in rows])
+  return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1), *_unpack_prep(o, nb))
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "resets", "flow_min_height", "to_smem", "in_place"))
+@_packed_io
+def prep_tick(spec, resets, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due, *,
+              flow_min_height: float, to_smem: bool = PREP_TO_SMEM, in_place: bool = IN_PLACE):
+  """The whole EKF tick but the injection and the records as one Mosaic GPU kernel: the nominal state's prediction,
+  H, the innovations (`prep_inputs`) and `cov_tick`'s covariance work, per lane.
+
+  P: [B, 121] packed (or any layout, returned in it). quat [B, 4], vel, pos, gyro_bias, accel_bias [B, 3]: the
+  nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf._measurement_rows`; enable
+  [B, 13] bool (the flow rows before the predicted-height check); due [B, 3] bool; flow_min_height: the EKF
+  config's (m); to_smem: see `PrepLayout`. Returns (P, dx [B, 15], ratio
+  [B, 13], accept [B, 13] bool, innov [B, 13] before the gates, pos [B, 3], vel [B, 3], quat [B, 4] predicted)."""
+  lay = PrepLayout(spec, to_smem)
+
+  @jax.custom_batching.custom_vmap
+  def call(P, *args):
+    def body(p_load, p_store, load, store):
+      prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem)
+    Po, out = _lanes_call(P, pack_prep(*args), lay.n_rows, lay.out_rows, body, in_place)
+    return (Po, *_unpack_prep(out, P.shape[0]))
+
+  @call.def_vmap
+  def _(axis_size, in_batched, *args):   # an outer vmap (a sweep's members): its axis joins the kernel's batch
+    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
+    outs = call(*[x.reshape((-1,) + x.shape[2:]) for x in args])
+    return tuple(o.reshape((axis_size, -1) + o.shape[1:]) for o in outs), (True,) * len(outs)
+
+  return call(P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due)

@@ -27,6 +27,41 @@ def test_lane_body_equals_xla_tick(vehicle, stale):
   _check(_xla(cfg, stale)(*args), out)
 
 
+def _raw_batch(cfg, n, seed):
+  """n random vehicles' inputs to `ekf_lanes.prep_tick`: P, the nominal state (some below the flow's minimum height),
+  an IMU sample, observation rows near the state's (some far outside their gates), fresh flags, resets due."""
+  rng = np.random.default_rng(seed)
+  P = _batch(cfg, n, seed)[0]
+  f = lambda *shape, s=1.0: (rng.normal(size=(n,) + shape) * s).astype(np.float32)
+  quat = f(4)
+  quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+  pos = np.c_[f(2, s=50.0), rng.uniform(0.0, 20.0, (n, 1))].astype(np.float32)
+  vel = f(3, s=3.0)
+  gyro, accel = f(3, s=0.5), f(3) + np.float32([0.0, 0.0, 9.81])
+  yaw = np.arctan2(2 * (quat[:, 0] * quat[:, 3] + quat[:, 1] * quat[:, 2]), 1 - 2 * (quat[:, 2] ** 2 + quat[:, 3] ** 2))
+  z = np.c_[pos + f(3, s=2.0), vel + f(3), pos[:, 2:] + f(1, s=2.0), yaw[:, None] + f(1, s=0.3), f(2),
+            f(1, s=3.0), np.zeros((n, 2))].astype(np.float32)
+  args = (P, quat, vel, pos, f(3, s=0.01), f(3, s=0.1), gyro, accel, z, rng.random((n, 13)) < 0.8,
+          rng.random((n, 3)) < 0.5)
+  return [jnp.asarray(x) for x in args]
+
+
+@pytest.mark.parametrize("vehicle,stale,to_smem", [("drone", (), True), ("drone", ("gps",), False),
+                                                   ("rover", (), False), ("rover", ("gps",), True)])
+def test_prep_body_equals_the_xla_tick(vehicle, stale, to_smem):
+  """The tick with its inputs prepared per lane (`prep_tick`'s body: the prediction, H, the innovations, then the
+  covariance work; its inputs through shared memory or in registers) against ekf._tick_prep_xla (what ekf_step
+  computes in XLA), eager on the CPU."""
+  cfg = _cfg(vehicle)
+  args = _raw_batch(cfg, 256, seed=6)
+  out = ekf_lanes.prep_tick_xla(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args,
+                                flow_min_height=float(cfg.flow_min_height), to_smem=to_smem)
+  ref = jax.jit(jax.vmap(lambda *x: ekf_lib._tick_prep_xla(cfg, DT, stale, *x)))(*args)
+  _check(ref[:4], out[:4])
+  for r, o in zip(ref[4:], out[4:]):     # innovations before the gates, the predicted pos, vel, quat
+    np.testing.assert_allclose(np.asarray(o), np.asarray(r), rtol=1e-5, atol=1e-5)
+
+
 def test_lane_body_catches_a_changed_tick():
   """The comparison above can fail: a lane body given another tick length differs from the reference."""
   cfg = _cfg("drone")
@@ -43,6 +78,19 @@ def test_kernel_lowers_for_cuda(vehicle):
   args = _batch(cfg, 256, seed=0)
   spec = ekf_lib._cov_spec(cfg, DT, ())
   fn = jax.jit(lambda *x: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *x))
+  text = fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+  assert "mosaic_gpu" in text
+
+
+@pytest.mark.parametrize("vehicle,to_smem", [("drone", True), ("rover", False)])
+def test_prep_kernel_lowers_for_cuda(vehicle, to_smem):
+  pytest.importorskip("jax.experimental.pallas.mosaic_gpu")
+  cfg = _cfg(vehicle)
+  args = _raw_batch(cfg, 256, seed=0)
+  args[0] = ekf_lib.pack_p(args[0])
+  spec = ekf_lib._cov_spec(cfg, DT, ("gps",))
+  fn = jax.jit(lambda *x: ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *x, to_smem=to_smem,
+                                              flow_min_height=float(cfg.flow_min_height)))
   text = fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
   assert "mosaic_gpu" in text
 
@@ -154,9 +202,17 @@ def lanes_on_cpu(monkeypatch):
                                                  jnp.asarray(gate), *x[5:], stale, unrolled=True))(
         P, A, B, H, innov, enable, due)      # P packed in, packed out (`_cov_tick` keeps P's layout)
 
+  def fake_prep(spec, resets, P, *args, flow_min_height):
+    calls.append(P.shape)
+    stale = () if spec.used[0] else ("gps",)
+    cfg = next(c for c in calls.cfgs
+               if ekf_lib._cov_spec(c, spec.dt, stale) == spec and ekf_lanes.resets_of(c) == resets)
+    return jax.vmap(lambda *x: ekf_lib._tick_prep_xla(cfg, spec.dt, stale, *x))(P, *args)
+
   calls = type("Calls", (list,), {})()
   calls.cfgs = [_cfg("drone")]
   monkeypatch.setattr(ekf_lanes, "cov_tick", fake)
+  monkeypatch.setattr(ekf_lanes, "prep_tick", fake_prep)
   return calls
 
 
