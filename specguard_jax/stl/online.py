@@ -26,7 +26,9 @@ from specguard_jax.stl.offline import as_formula, evaluate
 
 @struct.dataclass
 class MonitorState:
-  """t: [...] int32 samples seen.  window: {signal: [..., Hw+1]} last samples (newest last).
+  """t: [...] int32 samples seen.  window: {signal: [..., Hw+1]} last samples, a ring: the sample of time s at
+  slot s mod (Hw+1) (written in place, one entry per update; a shifted copy was a full rewrite of every window plus a
+  copy into the training loop's carry each step, XLA not aliasing a shift with its input).
   prefix: {signal: [..., Hp+1]} first samples.  acc: per-anchor running accumulators ([...] floats)."""
 
   t: jnp.ndarray
@@ -105,8 +107,7 @@ class OnlineMonitor:
     t = state.t
     x = {n: jnp.broadcast_to(jnp.asarray(signals_t[n]), bs)
          for n in self.signals}
-    window = {n: jnp.concatenate([b[..., 1:], x[n][..., None].astype(b.dtype)], axis=-1)
-              for n, b in state.window.items()}
+    window = {n: _ring_write(b, t % (hw + 1), x[n].astype(b.dtype)) for n, b in state.window.items()}
     prefix = {n: jnp.where(jnp.arange(hp + 1) == t[..., None], x[n][..., None].astype(b.dtype), b)
               for n, b in state.prefix.items()}
     vals, new_acc = [], []
@@ -118,8 +119,10 @@ class OnlineMonitor:
         new_acc.append(())
         continue
       # The window's h + 1 positions as separate [...] arrays (stl/columns.py: the array form's cumulative min / max
-      # are O(h^2) reduce-windows on the GPU); position k holds time t - h + k, valid once t - h + k >= 0.
-      buf = {n: b[..., hw - h:] for n, b in window.items()}
+      # are O(h^2) reduce-windows on the GPU); position k holds time t - h + k (ring slot (t - h + k) mod (hw + 1)),
+      # valid once t - h + k >= 0.
+      slots = (t[..., None] - h + jnp.arange(h + 1)) % (hw + 1)
+      buf = {n: jnp.take_along_axis(b, slots, axis=-1) for n, b in window.items()}
       valid = [t >= h - k for k in range(h + 1)]
       if kind in ("G", "F"):
         op, fill = (jnp.minimum, jnp.inf) if kind == "G" else (jnp.maximum, -jnp.inf)
@@ -141,6 +144,13 @@ class OnlineMonitor:
         new_acc.append((jnp.minimum(m_fin, lv[0]), jnp.maximum(best_fin, jnp.minimum(rv[0], m_fin))))
     out = _combine(skel, vals)
     return MonitorState(t + 1, window, prefix, tuple(new_acc)), out
+
+
+def _ring_write(b, slot, x):
+  """b [..., W] with b[..., slot] = x (slot, x [...]): an indexed write XLA does in place."""
+  if b.ndim == 1:
+    return b.at[slot].set(x)
+  return jnp.put_along_axis(b, slot[..., None], x[..., None], axis=-1, inplace=False)
 
 
 def _combine(skel, vals):
