@@ -329,12 +329,11 @@ def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
   return (Po, *_unpack_out(out, P.shape[0], spec))
 
 
-def _lanes_call(P, aux, n_rows, out_rows, body, in_place):
+def _lanes_call(P, aux, n_rows, n_out, body, in_place):
   """One Mosaic GPU kernel over P packed [B, 121] and aux [n_in, B] (vehicle-minor): each program copies its 128
   vehicles' P rows and aux columns into shared memory (aux into the first n_in of n_rows >= n_in rows), runs
-  body(p_load, p_store, load, store) per lane, writes P back (in place with in_place) and the aux rows out_rows out:
-  an int n (rows [0, n)) or ((start, count), ...), copied one after the other. Returns (P packed [B, 121], out
-  [sum of the counts, B_padded])."""
+  body(p_load, p_store, load, store) per lane, writes P back (in place with in_place) and the aux rows [0, n_out) out.
+  Returns (P packed [B, 121], out [n_out, B_padded])."""
   from jax.experimental import pallas as pl
   import jax.experimental.pallas.mosaic_gpu as plgpu
   nb = P.shape[0]
@@ -343,8 +342,6 @@ def _lanes_call(P, aux, n_rows, out_rows, body, in_place):
   Pg = jnp.pad(P.astype(f32), ((0, bp - nb), (0, 0))).reshape(bp * N_PACKED // LANES, LANES)
   n_in = aux.shape[0]
   aux = jnp.pad(aux, ((0, 0), (0, bp - nb)))
-  segments = ((0, out_rows),) if isinstance(out_rows, int) else tuple(out_rows)
-  n_out = sum(c for _, c in segments)
 
   def kernel(p_gmem, aux_gmem, *refs):
     *po_gmem, out_gmem, p_smem, aux_smem, p_bar, aux_bar = refs
@@ -366,10 +363,7 @@ def _lanes_call(P, aux, n_rows, out_rows, body, in_place):
     body(lambda i, j: p_vm[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux_smem[k], store)
     plgpu.commit_smem()
     plgpu.copy_smem_to_gmem(p_smem, po_gmem.at[pl.ds(b * N_PACKED, N_PACKED)])
-    dst = 0
-    for start, count in segments:
-      plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(start, count)], out_gmem.at[pl.ds(dst, count), blk])
-      dst += count
+    plgpu.copy_smem_to_gmem(aux_smem.at[pl.ds(0, n_out)], out_gmem.at[:, blk])
     plgpu.wait_smem_to_gmem(0)
 
   out_type = jax.ShapeDtypeStruct((n_out, bp), f32)
@@ -400,12 +394,10 @@ def resets_of(cfg):
 # nominal state and the readings (what ekf._predict_nominal and ekf._innovations do in XLA). The kernel's input block
 # is then 51 rows, each a copy of one state or reading component, where `cov_tick`'s is 69-75 rows that XLA computes
 # in one concatenate fusion, every row re-deriving its value from ~10 operands (rover profile, session 39: 24 us of
-# that fusion per tick against the kernel's 47).
-
-# prep_tick's default form (`PrepLayout`): the prepared inputs held in registers (False) or through shared memory
-# (True). One H200, 65,536 envs, the trainer's env (session 40, bench/env_step_ab.py, ms per step): rover 1.986 in
-# registers, 2.003 through shared memory, 2.066-2.068 with `cov_tick`; drone 2.773 / 2.798 / 2.797-2.799.
-PREP_TO_SMEM = False
+# that fusion per tick against the kernel's 47). The prepared inputs stay in registers (through shared memory, as
+# `cov_tick`'s kernel reads its inputs, was slower: one H200, 65,536 envs, the trainer's env, session 40,
+# bench/env_step_ab.py, ms per step: rover 1.986 in registers, 2.003 through shared memory, 2.066-2.068 with
+# `cov_tick`; drone 2.773 / 2.798 / 2.797-2.799).
 _PREP_IN = (("quat", 4), ("vel", 3), ("pos", 3), ("gb", 3), ("ab", 3), ("gyro", 3), ("accel", 3), ("z", N_ROWS),
             ("en", N_ROWS), ("due", 3))
 _PREP_OUT = (("dx", N_ERR), ("ratio", N_ROWS), ("acc", N_ROWS), ("innov", N_ROWS), ("pos", 3), ("vel", 3),
@@ -421,30 +413,18 @@ def _offsets(fields):
 
 
 class PrepLayout:
-  """Rows of `prep_tick`'s inputs in aux and of its outputs over them (the kernel's out block: `out_rows`).
+  """Rows of `prep_tick`'s inputs in aux and of its outputs over them (the kernel's out block: rows [0, n_out)).
 
   in (`_PREP_IN`): quat [4], vel [3], pos [3], gyro_bias [3], accel_bias [3] (the nominal state before the tick),
   gyro [3], accel [3] (the IMU sample, unclipped), z [13] (`ekf._measurement_rows`), enable [13] (1.0 / 0.0, the flow
   rows before the predicted-height check), due [3]. out (`_PREP_OUT`): dx [15], ratio [13], accept [13] (1.0 / 0.0),
-  innov [13] (before the gates), the predicted pos [3], vel [3], quat [4].
-  to_smem (`prep_body`): the prepared inputs are written over the raw ones as `Layout(spec)` places them and the extra
-  outputs (innov onwards) go to the rows after that block, so the tick reads them from shared memory as `cov_tick`'s
-  kernel does (keeping them in registers through the tick instead may spill)."""
+  innov [13] (before the gates), the predicted pos [3], vel [3], quat [4]."""
 
-  def __init__(self, spec, to_smem: bool):
+  def __init__(self):
     self.inp, self.n_in = _offsets(_PREP_IN)
-    out, self.n_out = _offsets(_PREP_OUT)
-    self.dx, self.ratio, self.acc = out["dx"], out["ratio"], out["acc"]
-    self.out = out
-    n_main = out["innov"]                                   # dx, ratio, accept
-    if to_smem:
-      base = Layout(spec).n_aux
-      self.extra = {name: base + out[name] - n_main for name, _ in _PREP_OUT[3:]}
-      self.out_rows = ((0, n_main), (base, self.n_out - n_main))
-    else:
-      self.extra = {name: out[name] for name, _ in _PREP_OUT[3:]}
-      self.out_rows = ((0, self.n_out),)
-    self.n_rows = max(self.n_in, max(s + c for s, c in self.out_rows))
+    self.out, self.n_out = _offsets(_PREP_OUT)
+    self.dx, self.ratio, self.acc = self.out["dx"], self.out["ratio"], self.out["acc"]
+    self.n_rows = max(self.n_in, self.n_out)
 
 
 def _sqrt(x):
@@ -537,37 +517,16 @@ def prep_inputs(spec, flow_min_height: float, x: dict):
   return inputs, innov, pos, vel, quat
 
 
-def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem: bool = False):
-  """The tick with its inputs prepared per lane (`prep_inputs`), then `tick_body`; loads and stores as
-  `tick_body`'s, rows as `PrepLayout(spec, to_smem)` places them. to_smem: the prepared inputs are stored as
-  `Layout` places them and `tick_body` loads them back when it needs them (a load after a store: the kernel's
-  shared memory, or a dict standing in for it)."""
-  lay = PrepLayout(spec, to_smem)
+def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store):
+  """The tick with its inputs prepared per lane (`prep_inputs`, held in registers), then `tick_body`; loads and
+  stores as `tick_body`'s, rows as `PrepLayout` places them."""
+  lay = PrepLayout()
   x = {name: [load(lay.inp[name] + k) for k in range(size)] for name, size in _PREP_IN}
   inputs, innov, pos, vel, quat = prep_inputs(spec, flow_min_height, x)
-  extra = (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat))
-  if to_smem:
-    o = Layout(spec)
-    for i in range(3):
-      for m in range(3):
-        store(o.A + 3 * i + m, inputs["A"][i][m])
-        store(o.B + 3 * i + m, inputs["B"][i][m])
-    for e, (i, c) in enumerate(spec.h_entries()):
-      store(o.H + e, inputs["hd"][i][c])
-    for i in range(N_ROWS):
-      store(o.innov + i, innov[i])
-      store(o.en + i, jnp.where(inputs["enable"][i], 1.0, 0.0))
-    for b in range(3):
-      store(o.due + b, jnp.where(inputs["due"][b], 1.0, 0.0))
-    for name, vals in extra:
-      for k, v in enumerate(vals):
-        store(lay.extra[name] + k, v)
-    tick_body(spec, resets, p_load, p_store, load, store)
-    return
   tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
-  for name, vals in extra:
+  for name, vals in (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat)):
     for k, v in enumerate(vals):
-      store(lay.extra[name] + k, v)
+      store(lay.out[name] + k, v)
 
 
 def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due):
@@ -588,7 +547,7 @@ def _unpack_prep(out, nb):
 
 
 @_packed_io
-def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float, to_smem: bool = False):
+def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float):
   """`prep_body` in plain JAX over [B] vectors (tests, the CPU), aux rows in a dict standing in for shared memory.
   Arguments and results as `prep_tick`'s."""
   mem = dict(enumerate(pack_prep(*inputs)))
@@ -598,32 +557,31 @@ def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float, to_smem: boo
     p_out[TRI_INDEX[(i, j)]] = v
 
   prep_body(spec, resets, flow_min_height, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, mem.__getitem__,
-            mem.__setitem__, to_smem)
+            mem.__setitem__)
   nb = P.shape[0]
-  rows = [k for start, count in PrepLayout(spec, to_smem).out_rows for k in range(start, start + count)]
-  o = jnp.stack([jnp.broadcast_to(mem[k], (nb,)) for k in rows])
+  o = jnp.stack([jnp.broadcast_to(mem[k], (nb,)) for k in range(PrepLayout().n_out)])
   return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1), *_unpack_prep(o, nb))
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "resets", "flow_min_height", "to_smem", "in_place"))
+@functools.partial(jax.jit, static_argnames=("spec", "resets", "flow_min_height", "in_place"))
 @_packed_io
 def prep_tick(spec, resets, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due, *,
-              flow_min_height: float, to_smem: bool = PREP_TO_SMEM, in_place: bool = IN_PLACE):
+              flow_min_height: float, in_place: bool = IN_PLACE):
   """The whole EKF tick but the injection and the records as one Mosaic GPU kernel: the nominal state's prediction,
   H, the innovations (`prep_inputs`) and `cov_tick`'s covariance work, per lane.
 
   P: [B, 121] packed (or any layout, returned in it). quat [B, 4], vel, pos, gyro_bias, accel_bias [B, 3]: the
   nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf._measurement_rows`; enable
   [B, 13] bool (the flow rows before the predicted-height check); due [B, 3] bool; flow_min_height: the EKF
-  config's (m); to_smem: see `PrepLayout`. Returns (P, dx [B, 15], ratio
+  config's (m). Returns (P, dx [B, 15], ratio
   [B, 13], accept [B, 13] bool, innov [B, 13] before the gates, pos [B, 3], vel [B, 3], quat [B, 4] predicted)."""
-  lay = PrepLayout(spec, to_smem)
+  lay = PrepLayout()
 
   @jax.custom_batching.custom_vmap
   def call(P, *args):
     def body(p_load, p_store, load, store):
-      prep_body(spec, resets, flow_min_height, p_load, p_store, load, store, to_smem)
-    Po, out = _lanes_call(P, pack_prep(*args), lay.n_rows, lay.out_rows, body, in_place)
+      prep_body(spec, resets, flow_min_height, p_load, p_store, load, store)
+    Po, out = _lanes_call(P, pack_prep(*args), lay.n_rows, lay.n_out, body, in_place)
     return (Po, *_unpack_prep(out, P.shape[0]))
 
   @call.def_vmap

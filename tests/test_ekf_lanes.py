@@ -46,16 +46,15 @@ def _raw_batch(cfg, n, seed):
   return [jnp.asarray(x) for x in args]
 
 
-@pytest.mark.parametrize("vehicle,stale,to_smem", [("drone", (), True), ("drone", ("gps",), False),
-                                                   ("rover", (), False), ("rover", ("gps",), True)])
-def test_prep_body_equals_the_xla_tick(vehicle, stale, to_smem):
+@pytest.mark.parametrize("vehicle,stale", [("drone", ()), ("drone", ("gps",)), ("rover", ()), ("rover", ("gps",))])
+def test_prep_body_equals_the_xla_tick(vehicle, stale):
   """The tick with its inputs prepared per lane (`prep_tick`'s body: the prediction, H, the innovations, then the
-  covariance work; its inputs through shared memory or in registers) against ekf._tick_prep_xla (what ekf_step
+  covariance work) against ekf._tick_prep_xla (what ekf_step
   computes in XLA), eager on the CPU."""
   cfg = _cfg(vehicle)
   args = _raw_batch(cfg, 256, seed=6)
   out = ekf_lanes.prep_tick_xla(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args,
-                                flow_min_height=float(cfg.flow_min_height), to_smem=to_smem)
+                                flow_min_height=float(cfg.flow_min_height))
   ref = jax.jit(jax.vmap(lambda *x: ekf_lib._tick_prep_xla(cfg, DT, stale, *x)))(*args)
   _check(ref[:4], out[:4])
   for r, o in zip(ref[4:], out[4:]):     # innovations before the gates, the predicted pos, vel, quat
@@ -82,14 +81,14 @@ def test_kernel_lowers_for_cuda(vehicle):
   assert "mosaic_gpu" in text
 
 
-@pytest.mark.parametrize("vehicle,to_smem", [("drone", True), ("rover", False)])
-def test_prep_kernel_lowers_for_cuda(vehicle, to_smem):
+@pytest.mark.parametrize("vehicle", ["drone", "rover"])
+def test_prep_kernel_lowers_for_cuda(vehicle):
   pytest.importorskip("jax.experimental.pallas.mosaic_gpu")
   cfg = _cfg(vehicle)
   args = _raw_batch(cfg, 256, seed=0)
   args[0] = ekf_lib.pack_p(args[0])
   spec = ekf_lib._cov_spec(cfg, DT, ("gps",))
-  fn = jax.jit(lambda *x: ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *x, to_smem=to_smem,
+  fn = jax.jit(lambda *x: ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *x,
                                               flow_min_height=float(cfg.flow_min_height)))
   text = fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
   assert "mosaic_gpu" in text
