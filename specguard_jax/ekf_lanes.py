@@ -1,8 +1,9 @@
 """The EKF tick's covariance work with one vehicle per GPU lane: a Pallas Mosaic GPU kernel (NVIDIA Hopper).
 
 What it computes is `ekf._cov_tick` (the XLA form, the reference and the CPU path): the prediction of P, the tick's
-symmetrisation and clamps, the grouped innovation gates, the sequential scalar fusion of the accepted rows in
-low-rank form, the timeout resets and the closing clean-up. It returns what `_cov_tick` returns (P, dx [B, 15], test
+symmetrisation and clamps, the grouped innovation gates, the sequential scalar fusion of the accepted rows (P
+updated row by row, `ekf._rows_rolled`'s form; `_cov_tick`'s low-rank form is the same filter), the timeout resets and
+the closing clean-up. It returns what `_cov_tick` returns (P, dx [B, 15], test
 ratio [B, 13], accept [B, 13] bool), equal to float32 rounding (`tests/test_ekf_lanes.py`).
 
 One program owns 128 vehicles, one per thread of a warpgroup, so in the kernel every per-vehicle quantity is a [128]
@@ -160,7 +161,7 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
       store(r, zero)
     return
 
-  # ---- gates (ekf._gate) and low-rank sequential fusion (ekf._rows_unrolled)
+  # ---- gates (ekf._gate) and the sequential fusion of the accepted rows
   hd = inputs["hd"]
   used = [i for i in range(N_ROWS) if spec.used[i]]
 
@@ -170,11 +171,15 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
       t = h * v[c] if t is None else t + h * v[c]
     return t
 
-  PHt = {i: [hdot(i, [P[c][r] for c in range(n)]) for r in range(n)] for i in used}
+  # Gates from the predicted P: S_i = h_i' P h_i + R_i as a quadratic form over h_i's few entries (no P h_i vector
+  # is kept for later: a [15] vector per row held across the fusion spilled registers to local memory, session 41).
   innov, enable = inputs["innov"], inputs["enable"]
   ratio, bad = [], []
   for i in range(N_ROWS):
-    S = hdot(i, PHt[i]) + spec.R[i] if i in PHt else spec.R[i] + 0.0 * innov[i]
+    if i in used:
+      S = hdot(i, {c: hdot(i, [P[c][r] for r in range(n)]) for c in hd[i]}) + spec.R[i]
+    else:
+      S = spec.R[i] + 0.0 * innov[i]
     r = innov[i] * innov[i] / ((spec.gate[i] * spec.gate[i]) * S)
     r = jnp.where(_finite(r), r, 1e6)
     ratio.append(r)
@@ -186,24 +191,20 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
   accept = [enable[i] & ~gbad[spec.group_of_row[i]] for i in range(N_ROWS)]
   innov = [jnp.where(accept[i], innov[i], 0.0) for i in range(N_ROWS)]
 
-  us, cs = [], []
+  # Sequential scalar fusion with P updated after each row (ekf._rows_rolled's form; ekf._rows_unrolled's low-rank
+  # form, the XLA reference, is the same filter): per row P h_i from the current P, then P -= c (P h_i)(P h_i)' on
+  # the triangle. Live across rows: P's 120 entries, dx, one [15] vector; the low-rank form kept every row's P_0 h_i
+  # and u_i until the end (~390 values: 255 registers and ~1.1 KB of spills per thread on the GPS tick).
   dx = [None] * n
   for i in used:
-    pht = PHt[i]
-    for u, c in zip(us, cs):
-      k = c * hdot(i, u)
-      pht = [pht[r] - k * u[r] for r in range(n)]
+    pht = [hdot(i, [P[c][r] for c in range(n)]) for r in range(n)]
     c = jnp.where(accept[i], 1.0 / (hdot(i, pht) + spec.R[i]), 0.0)
     g = c * (innov[i] - (hdot(i, dx) if dx[0] is not None else 0.0))
     dx = [(g * pht[r]) if dx[r] is None else dx[r] + g * pht[r] for r in range(n)]
-    us.append(pht)
-    cs.append(c)
-  Pn = [[None] * n for _ in range(n)]
-  for (i, j) in TRI:
-    v = P[i][j]
-    for u, c in zip(us, cs):
-      v = v - c * (u[i] * u[j])
-    Pn[i][j] = Pn[j][i] = v
+    cp = [c * pht[r] for r in range(n)]
+    for (a, b) in TRI:
+      P[a][b] = P[b][a] = P[a][b] - cp[a] * pht[b]
+  Pn = P
 
   # ---- timeout resets, closing clean-up (ekf._reset_and_condition)
   cleared = [None] * n
@@ -523,10 +524,11 @@ def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store):
   lay = PrepLayout()
   x = {name: [load(lay.inp[name] + k) for k in range(size)] for name, size in _PREP_IN}
   inputs, innov, pos, vel, quat = prep_inputs(spec, flow_min_height, x)
-  tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
+  # Stored before the tick (every input is loaded by now): the predicted state is not held in registers through it.
   for name, vals in (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat)):
     for k, v in enumerate(vals):
       store(lay.out[name] + k, v)
+  tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
 
 
 def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due):
