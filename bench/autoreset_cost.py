@@ -102,6 +102,7 @@ def main():
                       "and, without --step-only, the trainer's step")
   p.add_argument("--raw-mjx", action="store_true",
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
+  p.add_argument("--unroll-ticks", action="store_true", help="EnvConfig.unroll_ticks in every env timed")
   p.add_argument("--ab-tick-cond", action="store_true",
                  help="also time Vmap(env).step with the GPS schedule picked per tick by a lax.cond (sessions 9-14) "
                       "instead of the static grouping, and print both first-call (compile) times")
@@ -110,6 +111,8 @@ def main():
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
   phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
+  if a.unroll_ticks:
+    phase2["unroll_ticks"] = True
   env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
   from specguard_jax import ekf as ekf_lib
   from specguard_jax.ppo.iteration import trainer_env_options
@@ -120,7 +123,7 @@ def main():
     if env_nf is not None:
       env_nf._fused_shadow = False
   env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)) if a.ab_tick_cond else None
-  label = f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (
+  label = f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (", ticks unrolled" if a.unroll_ticks else "") + (
       ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)

@@ -185,6 +185,11 @@ class EnvConfig:
   # their reset values), the trainer's env unless it trains with the residual detector (ppo/iteration.make_env): three
   # [11]-float selects and a write fewer per filter and tick.
   ekf_records: bool = True
+  # The GPS-free ticks of a step unrolled (lax.scan(unroll=True)) instead of a loop: XLA then copies no loop-carried
+  # leaves between those ticks. On an H200 at 65,536 envs (session 41, bench/env_step_ab.py) the trainer's rover env
+  # step 1.894 -> 1.809 ms, for ~13 s more compile per env variant (21 -> 34 s): worth it for long runs, not for the
+  # default one (train.py --unroll-ticks).
+  unroll_ticks: bool = False
 
   def validate(self):
     check_ekf_kernel(self.fused_ekf)
@@ -491,13 +496,13 @@ class RAVEnv(Env):
     positions [T, 3]). Without a GPS schedule (`_gps_period` None: on the CPU) a scan of full ticks. With one (period
     p), the ticks go in groups of p: a scan of the p - 1 ticks whose EKF leaves the GPS rows out, then the tick that can
     carry a GPS sample, each static: no lax.cond in the loop (on the GPU a cond's outputs, P included, are copied into
-    the loop's carry; BENCHMARKS.md session 15)."""
-    p = self._gps_period
+    the loop's carry; BENCHMARKS.md session 15). EnvConfig.unroll_ticks unrolls the scans."""
+    p, unroll = self._gps_period, self.config.unroll_ticks
     if p is None:
-      return jax.lax.scan(lambda c, k: tick(c, k, None), carry, keys)
+      return jax.lax.scan(lambda c, k: tick(c, k, None), carry, keys, unroll=unroll)
 
     def group(carry, keys_g):   # keys_g [p, ...]
-      carry, pos = jax.lax.scan(lambda c, k: tick(c, k, False), carry, keys_g[:p - 1])
+      carry, pos = jax.lax.scan(lambda c, k: tick(c, k, False), carry, keys_g[:p - 1], unroll=unroll)
       carry, last = tick(carry, keys_g[p - 1], True)
       return carry, jnp.concatenate([pos, last[None]])
 

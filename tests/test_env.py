@@ -352,6 +352,48 @@ def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
                              rtol=1e-6, atol=1e-7)
 
 
+def _eqns_named(jaxpr, name):
+  """The equations of primitive `name` in a jaxpr and in every jaxpr nested in its equations' parameters."""
+  out = []
+  for e in jaxpr.eqns:
+    if e.primitive.name == name:
+      out.append(e)
+    for v in e.params.values():
+      for sub in (v if isinstance(v, (tuple, list)) else (v,)):
+        sub = getattr(sub, "jaxpr", sub)
+        if hasattr(sub, "eqns"):
+          out += _eqns_named(sub, name)
+  return out
+
+
+def test_unrolled_ticks_run_the_same_ticks(drone_env):
+  """EnvConfig.unroll_ticks unrolls the env step's tick scans (each scan's unroll is its length), the same ticks in
+  the same order with the same GPS schedule, with and without the GPU's GPS grouping (a toy tick whose result depends
+  on the order and on gps_due)."""
+  import copy
+
+  def tick(c, k, gps_due):   # c, k [3]; the "true position" output is the carry before the tick
+    return c * 1.5 + k + (100.0 if gps_due else 0.0) + (7.0 if gps_due is None else 0.0), c
+
+  c0, keys = jnp.array([1.0, -2.0, 0.5]), jnp.arange(15.0).reshape(5, 3)
+  for period in (None, 5):
+    outs, unrolls = [], []
+    for unroll in (False, True):
+      env = copy.copy(drone_env)
+      env.config = dataclasses.replace(drone_env.config, unroll_ticks=unroll)
+      env._gps_period = period
+      fn = lambda c, k: env._tick_loop(tick, c, k)   # noqa: B023
+      outs.append(jax.jit(fn)(c0, keys))
+      scans = _eqns_named(jax.make_jaxpr(fn)(c0, keys).jaxpr, "scan")
+      inner = [e for e in scans if e.params["length"] == (5 if period is None else 4)]
+      assert len(inner) == 1, scans
+      unrolls.append(inner[0].params["unroll"])
+    assert unrolls == [1, 5 if period is None else 4]
+    for a, b in zip(jax.tree.leaves(outs[0]), jax.tree.leaves(outs[1])):
+      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
+  assert envs.make("rover", unroll_ticks=True).config.unroll_ticks
+
+
 def test_env_without_ekf_records_is_the_same_env(drone_env):
   """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
   per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,

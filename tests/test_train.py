@@ -277,6 +277,17 @@ def test_bf16_matmuls_only_in_the_agents_networks():
   assert train_cli.build_config(train_cli.parse_args(["--matmul-precision", "bf16"])).matmul_precision == "bf16"
 
 
+def test_unroll_ticks_reaches_the_trainers_envs():
+  """train.py --unroll-ticks: TrainConfig.unroll_ticks, on in both phases' envs (EnvConfig.unroll_ticks); off by
+  default."""
+  assert not train_cli.build_config(train_cli.parse_args([])).unroll_ticks
+  cfg = train_cli.build_config(train_cli.parse_args(["--unroll-ticks"]))
+  assert cfg.unroll_ticks
+  assert iteration.make_env(cfg, 1).config.unroll_ticks
+  assert iteration.make_env(cfg, 2).env.config.unroll_ticks
+  assert not iteration.make_env(dataclasses.replace(cfg, unroll_ticks=False), 2).env.config.unroll_ticks
+
+
 def test_bf16_network_dtype_only_in_the_hidden_layers():
   """network_dtype='bfloat16' computes the hidden layers of both agents' networks in bf16 (acting, after-rollout
   values, PPO update), never their output layers (logits, means, values stay f32) and nothing of the env."""

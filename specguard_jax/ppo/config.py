@@ -102,6 +102,8 @@ class TrainConfig:
   fused_ekf: bool | str = False     # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
                                     # ("lanes", or "triton" / True); train.py: "lanes" on a Hopper or newer GPU
                                     # (runner.default_sizes)
+  unroll_ticks: bool = False        # envs.base.EnvConfig.unroll_ticks: the GPS-free ticks unrolled (quicker steps,
+                                    # longer compile)
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
   # The agents' networks in training (acting, values, PPO update): 'default' (f32 matmuls, which XLA runs

@@ -60,7 +60,7 @@ def trainer_env_options(detector: str = "none") -> dict:
 def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv), with `trainer_env_options`."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                fused_ekf=cfg.fused_ekf)
+                fused_ekf=cfg.fused_ekf, unroll_ticks=cfg.unroll_ticks)
   if phase == 1:
     return envs_lib.make(cfg.vehicle, control_mode="override", **trainer_env_options(), **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
