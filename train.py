@@ -83,8 +83,8 @@ def parse_args(argv=None):
                        "default on an NVIDIA Hopper or newer GPU: per-lane Mosaic GPU), triton (any NVIDIA GPU; "
                        "longer compiles) or xla (no kernel: XLA's fusions, the default elsewhere)")
   ap.add_argument("--unroll-ticks", action="store_true", default=None,
-                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps (rover -4.5 %% "
-                       "on an H200), ~13 s more compile per phase; for long runs")
+                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps (rover "
+                       "-4.5 %% on an H200), ~13 s more compile per phase; for long runs")
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")
