@@ -170,8 +170,8 @@ class EnvConfig:
   # tick for the whole batch (GPU only; a vmapped env's batch must be on one device: the trainer shard_maps the step,
   # ppo/iteration.group_step), the same filters to float32 rounding (BENCHMARKS.md): False (XLA); "lanes" the
   # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer, train.py's default there: the
-  # drone's tick 5x quicker than XLA, its env step 3.73x -> 2.02x raw MJX at 65,536 envs on an H200 (1.87x as the
-  # trainer configures the env, session 38), 3-8 s of compile
+  # drone's tick 5x quicker than XLA, its env step 3.73x -> 1.91x raw MJX at 65,536 envs on an H200 (1.83x as the
+  # trainer configures the env, the rover's 1.99x; session 41), 3-8 s of compile
   # per variant; P kept packed, ekf_init(p_layout="packed")); True or "triton" the Triton tile kernel (ekf_kernel.py,
   # any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P kept padded, ekf_init(p_layout="padded")).
   fused_ekf: bool | str = False

@@ -405,7 +405,7 @@ def default_sizes(backend: str) -> dict:
   """Env count, step budgets, the networks' compute dtype and the EKF kernel for the backend (GPU: tens of thousands
   of envs, bfloat16 hidden layers in training, +9 % training throughput at the same held-out quality (BENCHMARKS.md
   session 17), and on a Hopper or newer GPU with jax >= 0.11 the per-lane EKF kernel (`fused_ekf="lanes"`: the
-  default run 188-210 s on an H200, all held-out settings within target, sessions 36-40); CPU: hundreds of envs, float32,
+  default run 186-210 s on an H200, all held-out settings within target, sessions 36-41); CPU: hundreds of envs, float32,
   since XLA:CPU has no fast bf16 matmuls, and the XLA EKF)."""
   if backend == "gpu":
     from envs.base import lanes_kernel_supported
