@@ -110,21 +110,21 @@ def main():
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
-  phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
+  env_kw = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
   if a.unroll_ticks:
-    phase2["unroll_ticks"] = True
-  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)
+    env_kw["unroll_ticks"] = True
+  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **env_kw)
   from specguard_jax import ekf as ekf_lib
   from specguard_jax.ppo.iteration import trainer_env_options
-  trainer = trainer_env_options(phase2.get("detector", "none"))
-  env_nf = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **phase2) if a.ab_nan_fallback else None
+  trainer = trainer_env_options(env_kw.get("detector", "none"))
+  env_nf = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **env_kw) if a.ab_nan_fallback else None
   if a.shadow_xla:
     env._fused_shadow = False
     if env_nf is not None:
       env_nf._fused_shadow = False
-  env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **phase2)) if a.ab_tick_cond else None
-  label = f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (", ticks unrolled" if a.unroll_ticks else "") + (
-      ", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else "")
+  env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **env_kw)) if a.ab_tick_cond else None
+  label = (f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (", ticks unrolled" if a.unroll_ticks else "")
+           + (", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else ""))
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)
