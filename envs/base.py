@@ -186,9 +186,9 @@ class EnvConfig:
   # [11]-float selects and a write fewer per filter and tick.
   ekf_records: bool = True
   # The GPS-free ticks of a step unrolled (lax.scan(unroll=True)) instead of a loop (on the CPU, which has no GPS
-  # grouping, every tick): XLA then copies no loop-carried leaves between those ticks. On an H200 at 65,536 envs (session 41, bench/env_step_ab.py) the trainer's rover env
-  # step 1.894 -> 1.809 ms, for ~13 s more compile per env variant (21 -> 34 s): worth it for long runs, not for the
-  # default one (train.py --unroll-ticks).
+  # grouping, every tick): XLA then copies no loop-carried leaves between those ticks. On an H200 at 65,536 envs
+  # (session 41, bench/env_step_ab.py) the trainer's rover env step 1.894 -> 1.809 ms, for ~13 s more compile per env
+  # variant (21 -> 34 s): worth it for long runs, not for the default one (train.py --unroll-ticks).
   unroll_ticks: bool = False
 
   def validate(self):
