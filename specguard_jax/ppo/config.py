@@ -176,9 +176,26 @@ RETIRED_KEYS = {"fused_mlp": (False, "the fused MLP kernel was removed: no faste
 """Keys older run directories' config.json may hold: {key: (the only value still accepted, why it went)}."""
 
 
+# JSON values each annotation of TrainConfig / PPOConfig accepts (an int field also takes an integral float: 1e8).
+_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,), "tuple": (list, tuple),
+               "bool | str": (bool, str)}
+
+
+def _typed(key: str, v, annotation: str):
+  """v as the field's type, or a one-line ValueError naming the key (a string for a bool, say, reached jit before)."""
+  ok = _JSON_TYPES.get(annotation)
+  if ok is None:
+    return v
+  if annotation == "int" and isinstance(v, float) and v.is_integer():
+    return int(v)
+  if not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok):
+    raise ValueError(f"config key {key!r} must be {annotation.replace(' | ', ' or ')}, got {v!r}")
+  return float(v) if annotation == "float" else v
+
+
 def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
-  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys are one-line errors, retired
-  keys (RETIRED_KEYS) are skipped at their old default and refused otherwise."""
+  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys and values of the wrong type
+  are one-line errors, retired keys (RETIRED_KEYS) are skipped at their old default and refused otherwise."""
   base = base or TrainConfig()
   fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
   kw = {}
@@ -191,13 +208,18 @@ def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
     if k not in fields:
       raise ValueError(f"unknown config key {k!r}; valid: {', '.join(sorted(fields))}")
     if k in ("sg", "aa"):
+      if not isinstance(v, dict):
+        raise ValueError(f"config key {k!r} must be an object of PPO settings, got {v!r}")
       sub = {f.name for f in dataclasses.fields(PPOConfig)}
       bad = sorted(set(v) - sub)
       if bad:
         raise ValueError(f"unknown {k} PPO key(s) {', '.join(bad)}; valid: {', '.join(sorted(sub))}")
-      v = dataclasses.replace(getattr(base, k), **v)
-    elif isinstance(v, list):
-      v = tuple(v)
+      types = {f.name: str(f.type) for f in dataclasses.fields(PPOConfig)}
+      v = dataclasses.replace(getattr(base, k), **{n: _typed(f"{k}.{n}", x, types[n]) for n, x in v.items()})
+    else:
+      v = _typed(k, v, str(fields[k].type))
+      if isinstance(v, list):
+        v = tuple(v)
     kw[k] = v
   return dataclasses.replace(base, **kw)
 
