@@ -30,9 +30,9 @@ DETERMINISTIC_XLA_FLAG = "--xla_gpu_deterministic_ops=true"
 def request_deterministic_gpu_ops(environ=os.environ):
   """Adds XLA's deterministic-ops flag to environ's XLA_FLAGS (read once, when JAX starts its backend).
 
-  Why (BENCHMARKS.md session 25): XLA's autotuner picks GPU kernels by timing them as it compiles, so two cold compiles
-  of one run can round differently; this flag makes them agree (H100: three runs, two compiled cold, bit-identical)
-  at -29 % env steps/s. Raises ValueError when the backend has already started (the flag would silently do nothing)
+  Why: XLA's autotuner picks GPU kernels by timing them as it compiles, so two cold compiles of one run can round
+  differently; this flag makes them agree (cold-compiled runs repeat bit for bit) at a cost in env steps/s
+  (docs/PERFORMANCE.md). Raises ValueError when the backend has already started (the flag would silently do nothing)
   or when XLA_FLAGS already turns the option off."""
   flags = environ.get("XLA_FLAGS", "")
   if "--xla_gpu_deterministic_ops" in flags:
@@ -83,8 +83,8 @@ def parse_args(argv=None):
                        "default on an NVIDIA Hopper or newer GPU: per-lane Mosaic GPU), triton (any NVIDIA GPU; "
                        "longer compiles) or xla (no kernel: XLA's fusions, the default elsewhere)")
   ap.add_argument("--unroll-ticks", action="store_true", default=None,
-                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps (rover "
-                       "-4.5 %% on an H200), ~13 s more compile per phase; for long runs")
+                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps, "
+                       "more compile per phase; for long runs")
   ap.add_argument("--matmul-precision", choices=("default", "bf16"),
                   help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                        "with f32 accumulation (env, evaluation and ONNX export stay f32)")
@@ -106,8 +106,8 @@ def parse_args(argv=None):
                        "and trains (default: on unless the backend is the CPU)")
   ap.add_argument("--deterministic-gpu", action="store_true",
                   help=f"XLA's deterministic GPU ops (XLA_FLAGS={DETERMINISTIC_XLA_FLAG}): a cold-compiled GPU run "
-                       "repeats bit for bit (without it only a run reusing the compile cache's programs does); "
-                       "H100: -29 %% env steps/s")
+                       "repeats bit for bit (without it only a run reusing the compile cache's programs does), "
+                       "at fewer env steps/s")
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")

@@ -35,7 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Innermost first: a kernel is charged to the first of these found in its op_name's scope path.
 STAGES = ("physics", "autopilot", "sensors", "ekf", "detector", "recon_replay", "shadow_ekf", "reconstruction",
           "navigator", "stl_reward", "collision", "autoreset", "env_step", "attack_agent", "policy", "bootstrap_value", "values",
-          "episode_stats", "pool_refresh", "gae", "ppo_update")   # bootstrap_value: traces of code before session 18
+          "episode_stats", "pool_refresh", "gae", "ppo_update")   # bootstrap_value: older traces' scope
 _COMP = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*(?:\(|\{)")
 _DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(.*)$")
 

@@ -64,7 +64,7 @@ class PhysicsState:
   `mjx.step` recomputes every other field of `mjx.Data` (kinematics, inertia, contacts, constraint rows, forces,
   qacc) from these and the inputs a vehicle sets each tick (ctrl, qfrc_applied) before reading it, so carrying them
   through the tick loop, the rollout and the auto-reset's selects only moved memory: 84 arrays, 1,972 bytes per drone
-  against 80 here (`RAVEnv.physics_data` rebuilds a full `mjx.Data`; BENCHMARKS.md session 29).
+  against 80 here (`RAVEnv.physics_data` rebuilds a full `mjx.Data`).
   """
 
   time: jax.Array
@@ -186,9 +186,9 @@ class EnvConfig:
   # [11]-float selects and a write fewer per filter and tick.
   ekf_records: bool = True
   # The GPS-free ticks of a step unrolled (lax.scan(unroll=True)) instead of a loop (on the CPU, which has no GPS
-  # grouping, every tick): XLA then copies no loop-carried leaves between those ticks. On an H200 at 65,536 envs
-  # (session 41, bench/env_step_ab.py) the trainer's rover env step 1.894 -> 1.809 ms, for ~13 s more compile per env
-  # variant (21 -> 34 s): worth it for long runs, not for the default one (train.py --unroll-ticks).
+  # grouping, every tick): XLA then copies no loop-carried leaves between those ticks. A few percent off a GPU env step
+  # for more compile per env variant (bench/env_step_ab.py, docs/PERFORMANCE.md): worth it for long runs, not for the
+  # default one (train.py --unroll-ticks).
   unroll_ticks: bool = False
 
   def validate(self):
@@ -496,7 +496,7 @@ class RAVEnv(Env):
     positions [T, 3]). Without a GPS schedule (`_gps_period` None: on the CPU) a scan of full ticks. With one (period
     p), the ticks go in groups of p: a scan of the p - 1 ticks whose EKF leaves the GPS rows out, then the tick that can
     carry a GPS sample, each static: no lax.cond in the loop (on the GPU a cond's outputs, P included, are copied into
-    the loop's carry; BENCHMARKS.md session 15). EnvConfig.unroll_ticks unrolls the scans."""
+    the loop's carry). EnvConfig.unroll_ticks unrolls the scans."""
     p, unroll = self._gps_period, self.config.unroll_ticks
     if p is None:
       return jax.lax.scan(lambda c, k: tick(c, k, None), carry, keys, unroll=unroll)

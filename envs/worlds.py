@@ -465,7 +465,7 @@ def obstacle_sdf(world: World, pos: jnp.ndarray) -> jnp.ndarray:
 def obstacle_sdf_and_grad(world: World, pos: jnp.ndarray):
   """(obstacle_sdf(world, pos) [], its gradient w.r.t. pos [3]): the nearest valid obstacle's SDF gradient (a unit
   vector away from it, zero if there is none), from one reverse pass over that obstacle alone instead of over all
-  of them (what jax.value_and_grad(obstacle_sdf) does: ~2x the forward's work per env, session 36). Equal to it
+  of them (what jax.value_and_grad(obstacle_sdf) does: about twice the forward's work per env). Equal to it
   except where two obstacles are exactly equally near (there it averages their gradients, this takes one), and
   where XLA recomputes the min in the reverse pass with another rounding (no obstacle equals it there: the autodiff
   gradient is 0, seen jitted on the CPU; an argmin cannot miss). `obstacle_queries` with no other points."""
@@ -490,8 +490,7 @@ def obstacle_queries(world: World, points: jnp.ndarray, pos: jnp.ndarray):
   slots go through one variadic reduction (every point's distance and the nearest slot's distance and index at pos),
   then the nearest slot's gradient alone, so XLA reads the world's ~1.3 KB per env once, where the three queries
   (collision at the step's ticks, the signals at the last one, the observation at the estimate) read it three times
-  (session 37: -0.09 ms per drone env step at 65,536 envs; a per-slot gradient inside the reduction was slower, XLA
-  wrote it out for every slot)."""
+  (a per-slot gradient inside the reduction is slower: XLA writes it out for every slot)."""
   k = points.shape[0]
 
   def nearest(sdf, slots, mask):

@@ -10,8 +10,8 @@ the same mission but diverge through their own rng). Defaults: pool = max(8, B/8
 
 `refresh_in_step=False` leaves the pool alone in `step`; the caller then regenerates it in bulk with `refresh_pool`
 (the trainer does, once per rollout of `steps` env steps: the same number of fresh entries, `refresh` per step, capped
-at the pool size). A step then costs no reset at all: on an H100 the per-step refresh (a vmapped reset of B/128 envs
-plus one pool write per state leaf) was ~730 of AutoReset's ~880 extra kernels per env step (`bench/env_profile.py`).
+at the pool size). A step then costs no reset at all: the per-step refresh (a vmapped reset of B/128 envs plus one
+pool write per state leaf) is most of AutoReset's extra GPU kernels per env step (`bench/env_profile.py`).
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ class AutoReset(Wrapper):
                reset_chunk: int = 65_536):
     """reset_chunk: most envs one vmapped reset generates at once; `reset` makes the envs and the pool in equal
     chunks of at most this many, one after another (lax.map), so its working memory stops growing with the batch
-    (a drone reset's temporaries are ~84 KB per env: 1,048,576 envs and their pool in one go failed an 82 GiB
-    allocation on an H200 capped at 80 GB, BENCHMARKS.md session 32)."""
+    (a drone reset's temporaries are ~84 KB per env: 1,048,576 envs and their pool in one go need ~82 GiB, more
+    than a GPU's memory)."""
     super().__init__(env)
     if reset_chunk < 1:
       raise ValueError(f"reset_chunk must be >= 1, got {reset_chunk}")
@@ -90,8 +90,8 @@ class AutoReset(Wrapper):
       merged, taken = self._take_fresh(out, pool, cursor)
       # What the finished step leaves for the caller's bookkeeping goes out through a barrier: a caller that reduces
       # it over the batch (the trainer's episode statistics) would otherwise get its reductions fused with the
-      # selects above, which read the same values, into one reduction-rooted kernel (H200, 16,384 envs: 0.29 ms per
-      # step, half of the auto-reset's time; BENCHMARKS.md session 15).
+      # selects above, which read the same values, into one slow reduction-rooted kernel (about half of the
+      # auto-reset's GPU time).
       last, final_obs, final_rob = jax.lax.optimization_barrier(
           (out.info["episode"], out.obs, out.info["spec_robustness"]))
     new_info = dict(merged.info, truncation=out.info["truncation"], reset_pool=pool, final_obs=final_obs,
@@ -109,8 +109,7 @@ class AutoReset(Wrapper):
 
     The selects read `done` and the pool index through an optimization barrier and the count comes from the prefix
     sum's last entry: otherwise XLA fused the selects of every state leaf with reductions over `done` into
-    reduction-rooted kernels that ran ~6x slower than memory-bound (H100, 16,384 envs: the auto-reset's share of a
-    step 0.49 -> 0.17-0.37 ms in two calls; BENCHMARKS.md session 13)."""
+    reduction-rooted kernels that ran several times slower than memory-bound on a GPU."""
     done = out.done > 0
     rank = jnp.cumsum(done.astype(jnp.int32)) - 1
     sel, idx = jax.lax.optimization_barrier((done, (cursor + rank) % pool.done.shape[0]))
@@ -135,8 +134,7 @@ class AutoReset(Wrapper):
     if n == pool_n:
       # The whole pool (the trainer's bulk refresh with its default sizes): entry j goes to slot (ref_ptr + j) % n,
       # so reset the keys in slot order and take the result as the pool. The same states as the scatter below
-      # without its one scatter kernel per state leaf (245 of the drone's 672 pool-refresh kernels per phase-1
-      # iteration on an H100, BENCHMARKS.md session 28).
+      # without its one scatter kernel per state leaf (over a third of the drone's pool-refresh kernels).
       pool = self._reset_chunked(keys[(jnp.arange(n) - ref_ptr) % n])
     else:
       new = self._reset_chunked(keys)

@@ -60,7 +60,7 @@ def wrap_angle(a):
 
 # Small-vector products written component-wise. jnp.linalg.norm / jnp.dot / `@` on [2]-[4] vectors lower to reductions
 # and batched dots, and under vmap on a GPU every reduction or dot is a kernel of its own that XLA cannot fuse with its
-# neighbours (BENCHMARKS.md session 26: the PX4 cascade went from 15 to 7 kernels per tick this way). Sums of
+# neighbours (written this way the PX4 cascade is about half as many kernels per tick). Sums of
 # products of slices are elementwise over the batch and fuse into the surrounding kernels.
 
 

@@ -461,7 +461,7 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
   new = jax.jit(VmapWrapper(drone_env).reset)(jax.random.split(sub, 4))
   slot_of_entry = [(3 + j) % 4 for j in range(4)]
   # Two programs again: an observation entry that is 0 up to rounding (1e-8, a velocity at rest) came out 5e-9 apart
-  # once XLA fused the reset's neighbours differently (session 38), hence atol 1e-7.
+  # when XLA fuses the reset's neighbours differently, hence atol 1e-7.
   for x, y in zip(jax.tree.leaves(new), jax.tree.leaves(s_all.info["reset_pool"])):
     x, y = np.asarray(x), np.asarray(y)
     np.testing.assert_allclose(y[slot_of_entry], x, rtol=1e-6, atol=1e-7)

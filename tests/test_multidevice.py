@@ -322,7 +322,7 @@ KERNEL = textwrap.dedent("""
 def test_fused_ekf_kernel_steps_the_envs_per_device():
   r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], _env(2)), timeout=900)[0])
   assert r["kernel_in_step"] and r["shard_map"]       # the step calls the kernel, inside a per-device split
-  assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashed XLA on 2 H100s)
+  assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashes XLA on 2 GPUs)
   assert not r["shardy"]                               # the kernel's shard_map compiled by GSPMD, as on the GPUs
   assert r["P_shape"] == [2, 3, 16, 16]                # the kernel's padded layout of P, kept in the env state
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
@@ -331,7 +331,7 @@ def test_fused_ekf_kernel_steps_the_envs_per_device():
 
 
 # On a host with 2 GPUs: the three training programs that a shard_map had made XLA segfault at compile time there
-# (jax 0.11.2, BENCHMARKS.md session 14) compile and run: a plain run and a 2-member sweep without the kernel, and a
+# (jax 0.11.2) compile and run: a plain run and a 2-member sweep without the kernel, and a
 # run with the fused EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
 @pytest.mark.gpu
 def test_two_gpus_compile_and_train(tmp_path):

@@ -314,7 +314,7 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
     tiny(num_envs=5, unroll_length=3)
   with pytest.raises(ValueError, match="unknown config key"):
     config.from_dict({"bogus": 1})
-  assert config.from_dict({"fused_mlp": False}) == config.TrainConfig()   # a session-22 run dir's config.json
+  assert config.from_dict({"fused_mlp": False}) == config.TrainConfig()   # an older run dir's config.json
   with pytest.raises(ValueError, match="'fused_mlp' = True is no longer supported"):
     config.from_dict({"fused_mlp": True})
   # values of the wrong type name their key (a string for a bool reached the env's lax.scan as a TypeError)
@@ -373,7 +373,7 @@ TWO_PHASE = dict(phase1_steps=2 * 128, phase2_steps=2 * 128, iters_per_call=2)
 
 _COMPILES = {"on": False, "secs": [], "log": None}   # XLA compiles over 5 s while recording (the resumed run below)
 # 5 s: a training phase compiles in 20-90 s on the CPU; the resumed run's own small jits (restore, eval helpers) take up
-# to ~0.5 s on an idle 2-core machine and went over 1 s under the suite's two workers (1.08 s, 2026-11-27).
+# to ~0.5 s on an idle 2-core machine and can exceed 1 s under the suite's two workers.
 
 
 def _on_duration(event, secs, fun_name="", **_):

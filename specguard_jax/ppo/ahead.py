@@ -2,7 +2,7 @@
 background threads while the current phase compiles and trains.
 
 Why: on a GPU a default run spends more time in XLA compiling its three programs, one after the other, than in
-training (BENCHMARKS.md, session 20: 137-187 s of compiles against 9-18 s of training calls). XLA compilation
+training (several times more; docs/PERFORMANCE.md). XLA compilation
 releases the GIL, so the programs compile side by side on the host's cores (evaluation.precompile does the same for
 `evaluate.py`). What a thread compiles is exactly what the runner later calls: `jax.jit(f).lower(args).compile()`
 fills the same compile cache that `f(args)` looks up (checked by tests/test_train.py, which counts XLA compiles), so

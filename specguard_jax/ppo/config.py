@@ -42,7 +42,7 @@ class PPOConfig:
   # Most minibatch rows one device runs through the networks in one forward + backward pass. A larger minibatch is
   # cut into equal chunks whose gradients are summed (the same gradient up to float summation order), so the update's
   # activations stop growing with the env count: 1 << 20 leaves every run up to 262,144 envs per device with the
-  # default unroll and minibatches one pass; 4 chunks at 1,048,576 envs (BENCHMARKS.md session 32).
+  # default unroll and minibatches one pass; 4 chunks at 1,048,576 envs.
   max_rows_per_pass: int = 1 << 20
 
 
@@ -172,7 +172,7 @@ class TrainConfig:
 
 
 RETIRED_KEYS = {"fused_mlp": (False, "the fused MLP kernel was removed: no faster than XLA in training, "
-                                    "BENCHMARKS.md sessions 22-23")}
+                                    "see BENCHMARKS.md")}
 """Keys older run directories' config.json may hold: {key: (the only value still accepted, why it went)}."""
 
 

@@ -131,8 +131,8 @@ def group_step(batched, mesh=None, per_device: bool = False):
 
   per_device and a mesh of several devices: the groups axis is split explicitly (shard_map), each device stepping its
   own groups. The fused EKF kernel (a Pallas call, which has no sharding rule) needs that. Otherwise a plain vmap
-  that XLA's SPMD partitioner splits along the groups' sharding: on 2 H100s with jax 0.11.2 the shard_map inside
-  the training scan makes XLA's `shardy-xla` pass segfault at compile time (BENCHMARKS.md session 14), with or
+  that XLA's SPMD partitioner splits along the groups' sharding: on several GPUs with jax 0.11.2 the shard_map inside
+  the training scan makes XLA's `shardy-xla` pass segfault at compile time, with or
   without the kernel, so it is used only where the kernel needs it."""
   step = jax.vmap(batched.step)
   if mesh is None or mesh.size == 1 or not per_device:

@@ -138,8 +138,8 @@ def ppo_loss(agent: Agent, params, normalizer, batch, hp=None, norms=None):
 
   The minibatch sums are taken as stacked reductions (mask count with the advantage sum; the surrogate, entropy,
   value-error and KL terms together) rather than one per statistic: on a GPU each sum over a 65,536-row minibatch is
-  a launch-bound kernel or two of its own, 32 minibatch steps per training iteration (BENCHMARKS.md session 29;
-  tests/test_train.py::test_ppo_loss_equals_the_one_sum_per_statistic_form).
+  a launch-bound kernel or two of its own, 32 minibatch steps per training iteration
+  (tests/test_train.py::test_ppo_loss_equals_the_one_sum_per_statistic_form).
   """
   p = agent.ppo
   hp = hp or {"clip_eps": p.clip_eps, "ent_coef": p.ent_coef, "vf_coef": p.vf_coef}
@@ -201,7 +201,7 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   hp = {k: state.opt_state.hyperparams[k] for k in ("clip_eps", "ent_coef", "vf_coef")}
   # The minibatch steps work on the raveled params (one [P] vector): the gradient arrives as one vector and the
   # clipping norm, Adam, the finiteness check and the skip-select are a handful of kernels per step instead of a few
-  # per parameter array (BENCHMARKS.md, session 18).
+  # per parameter array.
   theta0, unravel = ravel_pytree(state.params)
   loss_of_flat = lambda theta, mb, norms=None: ppo_loss(agent, unravel(theta), normalizer, mb, hp, norms)  # noqa: E731
   grad_fn = jax.value_and_grad(loss_of_flat, has_aux=True)
@@ -226,8 +226,8 @@ def update(agent: Agent, state: AgentState, batch, key, groups: int = 1, constra
   def minibatch(carry, idx):
     theta, opt_state, skips, totals = carry
     # minibatch m: rows idx [G, n / M] of every group, gathered here so that only one minibatch of the shuffled
-    # batch is ever materialised (a whole shuffled copy held the attacker's observations alone at 5.8 KB per env in
-    # phase 2, BENCHMARKS.md session 32)
+    # batch is ever materialised (a whole shuffled copy holds the attacker's observations alone at 5.8 KB per env in
+    # phase 2)
     mb = jax.tree.map(lambda a: jax.vmap(lambda x, i: x[i])(a, idx), flat)
     (loss, aux), g = minibatch_grad(theta, constrain(mb))
     upd, new_opt = agent.optimizer.update(g, opt_state, theta)

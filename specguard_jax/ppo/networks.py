@@ -30,8 +30,8 @@ def tanh_stored(x):
 
   Flax's `nn.tanh` leaves XLA free to store the pre-activation (z + b) instead and to recompute tanh wherever y is read:
   in the next layer's GEMM (a tanh in f32 on every operand load of XLA's Triton GEMM fusion) and in the backward's
-  derivative. On an H100 those GEMMs ran at ~46 us per [65,536 x 256] x [256 x 256] bf16 product against ~25 us for the
-  same shape without the activation in it (BENCHMARKS.md session 29). The optimization barrier makes the bias-add
+  derivative. On a GPU those GEMMs run at about half the speed of the same shape without the activation in it
+  (docs/PERFORMANCE.md). The optimization barrier makes the bias-add
   kernel write y = tanh(z + b) and every reader load it. Same values as nn.tanh (y rounded to the layer's dtype either
   way)."""
   return jax.lax.optimization_barrier(jnp.tanh(x))

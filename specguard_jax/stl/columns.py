@@ -4,15 +4,14 @@ window form of `offline.evaluate`).
 `offline.evaluate` works on [..., T] arrays: its windows are shifts and cumulative min / max along the last axis, which
 jax lowers to reduce-windows (`lax.cummax` / `lax.cummin` on every backend in jax 0.10-0.11). XLA fuses those into a
 kernel whose every output position re-reads its whole window, O(T^2) strided loads per trace: the kernel holding them
-(the specs' robustness stack) took 44 / 56 us per drone / rover env step at 65,536 envs on an H200 with the monitor's
-31-sample windows (BENCHMARKS.md session 38). Here the
+(the specs' robustness stack) is a sizeable share of a GPU env step with the monitor's 31-sample windows
+(docs/PERFORMANCE.md). Here the
 temporal-free parts of the formula stay [..., T] arrays (one op per node) and, from a window operator up, every node
 is a list of T arrays [...] (positions oldest first): suffix chains, van Herk / Gil-Werman blocks for the windows, the
 until recurrence, O(T) arrays per operator, each elementwise over the batch, which XLA fuses into one pass per trace.
-(Session 38's first form split the predicates per position too: a program twice the size, the drone monitor
-compiling in 1.65 s on the CPU against 0.66 s, and ~6 s more compile for an env step on the GPU; this form ran -0.03
-ms per drone env step against the array form, -0.06 for the first, and as quick on the rover, with no compile cost
-beyond a call's spread: BENCHMARKS.md session 39.) The values are those of `offline.evaluate`: the same min / max / affine
+(Splitting the predicates per position too makes a program about twice the size, compiling more than twice as long
+for no quicker step; this form is a little quicker per drone env step than the array form, as quick on the rover, and
+compiles no slower.) The values are those of `offline.evaluate`: the same min / max / affine
 arithmetic per position (tests/test_stl_online.py).
 """
 
