@@ -62,7 +62,7 @@ def sparse_autoreset(base, frac: int = 16):
 
 
 def with_cond_gps_schedule(env):
-  """`env` with the tick loop of sessions 9-14: one scan over the step's ticks, the GPS-free ticks' EKF variant picked
+  """`env` with the env's earlier tick loop: one scan over the step's ticks, the GPS-free ticks' EKF variant picked
   by a lax.cond on the (unbatched) tick index, instead of envs.base's static grouping (the same values)."""
   p = env._gps_period
   if p is None:
@@ -104,7 +104,7 @@ def main():
                  help="also time raw MJX physics per env step (mjx.step x ticks_per_step, same model and batch)")
   p.add_argument("--unroll-ticks", action="store_true", help="EnvConfig.unroll_ticks in every env timed")
   p.add_argument("--ab-tick-cond", action="store_true",
-                 help="also time Vmap(env).step with the GPS schedule picked per tick by a lax.cond (sessions 9-14) "
+                 help="also time Vmap(env).step with the GPS schedule picked per tick by a lax.cond (the earlier loop) "
                       "instead of the static grouping, and print both first-call (compile) times")
   a = p.parse_args()
   import envs

@@ -1,10 +1,10 @@
 """JAX's persistent compilation cache for the CLIs (train.py, evaluate.py): XLA executables written to disk and
 reused by the next process that compiles the same program on the same device kind and jax/jaxlib version.
 
-Compiling, not flying, dominates short jobs: on an H100 `evaluate.py --suite paper` spent 174 s compiling its 17
-rollouts and 176 s flying 70,500 missions, and `train.py` compiles its two phases for 64 + 91 s. A second run of
+Compiling, not flying, dominates short jobs: on a GPU `evaluate.py --suite paper` spends about as long compiling its
+17 rollouts as flying 70,500 missions, and `train.py` compiles its two phases for minutes. A second run of
 the same code (another seed, a sweep, the next evaluation of a new checkpoint: params are jit arguments, not
-constants) reads the executables back instead (CPU, one drone rollout: compile 68 s -> 2 s). Tracing and lowering
+constants) reads the executables back instead, in seconds rather than a minute or more. Tracing and lowering
 still run each time.
 
 Where: `--compile-cache DIR` on the CLIs, else $SPECGUARD_COMPILE_CACHE, else $XDG_CACHE_HOME/specguard_jax/xla

@@ -11,8 +11,8 @@ while the alarm is up, which phase 2 trains; skipping it also saves its ~50 s co
 Deployed like a SpecGuard-RC run without reconstruction: reactive mode, residual detector.
 
   'ci'  : 8 envs, 2 x 128 env steps on the CPU (a smoke-sized policy: the compile is most of its minutes)
-  'full': 16,384 envs x 32-step unroll, 40 M phase-2 env steps on one GPU (~35 s of training at the measured
-          1.1-1.2 M phase-2 env steps/s on an H100, plus its ~55-65 s compile); bench/build_baselines.py prints
+  'full': 16,384 envs x 32-step unroll, 40 M phase-2 env steps on one GPU (under a minute of training, plus
+          about as long again to compile); bench/build_baselines.py prints
           the return curve (metrics.jsonl) to check it plateaus
 """
 

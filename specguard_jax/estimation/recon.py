@@ -308,8 +308,8 @@ def _start(cfg: ReconConfig, params: dyn.DynParams, start, entry, controls, ekf_
     s_new = s_new.replace(rate=_model_rate(cfg, s_new.rate))
     return jax.tree.map(lambda a, b: jnp.where(j <= w - 1, a, b), s_new, s)
 
-  # Unrolled on accelerators: a device while-loop costs a launch and a host sync per iteration (~30 us each on an
-  # H100), and this replay runs every tick for every env (a vmapped branch computes both sides).
+  # Unrolled on accelerators: a device while-loop costs a launch and a host sync per iteration (tens of us each on a
+  # GPU), and this replay runs every tick for every env (a vmapped branch computes both sides).
   s = jax.lax.fori_loop(0, lag, body, s0, unroll=max(lag, 1) if jax.default_backend() != "cpu" else 1)
   shadow = ekf_state.replace(pos=s.pos, vel=s.vel, quat=s.quat, gyro_bias=e["gyro_bias"],
                              accel_bias=e["accel_bias"], gps_pos_age=jnp.zeros(()), gps_vel_age=jnp.zeros(()),
