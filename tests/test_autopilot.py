@@ -87,8 +87,8 @@ def test_hover_holds_altitude(drone):
 def test_velocity_step_response(drone):
   """8 m/s forward + 1 m/s climb from hover (a raw step, no trajectory smoothing): within 0.4 m/s after 4 s and
   0.2 m/s after 7 s, tilt within the 45 deg limit, settled, yaw held. (The horizontal velocity integrator may use the
-  tilt authority beyond MPC_ACC_HOR_MAX since 72cc42b, for headwinds: its overshoot on this raw 8 m/s step is 0.353
-  m/s = 4.4 % at 4 s, was just under 0.35, and the integrator unwinds it slowly: 0.154 m/s at 7 s, 0.118 at 8 s.)"""
+  tilt authority beyond MPC_ACC_HOR_MAX, for headwinds: its overshoot on this raw 8 m/s step is about 0.35 m/s
+  (4.4 %) at 4 s, and the integrator unwinds it slowly: about 0.15 m/s at 7 s, 0.12 at 8 s.)"""
   target = jnp.array([8.0, 0.0, 1.0])
   pos, vel, eul = _fly(drone, lambda t: target, 400)
   assert np.all(np.abs(vel[200:] - np.asarray(target)) < 0.4)
