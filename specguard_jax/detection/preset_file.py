@@ -25,10 +25,10 @@ both vehicles, vs 59 % (drone) / 61 % (rover) of 64 such missions with the uncal
 accel z ~140: heavy-tailed residuals in manoeuvres), so a 3 m/s^2 accel-z bias is flagged (0.9 s) through the GPS
 channels first and blamed on the GPS; a smaller --h-margin trades that against margin (at 1.0 the 256 held-out
 missions still had no false alarm).
-GPS cross-checks (a later calibration on the same 1024 missions and seed, the CUSUM fields kept): dr_h, vel_h =
---xcheck-margin 1.2 x the sample maximum of each mission's largest |GPS - dead reckoning| (1 s EMA) / velocity chi
-(drone: 3.42 m / 5.50 -> dr_h 4.10 m, vel_h 6.60; per-mission q99 2.28 m / 4.93; rover, odometry: 1.72 m / 9.01 ->
-2.06 m, 10.81, its CUSUM fields kept from the earlier calibration, see the file's meta).
+GPS cross-checks (a later calibration on the same 1024 missions and seed, the CUSUM fields unchanged bit for bit):
+dr_h, vel_h = --xcheck-margin 1.2 x the sample maximum of each mission's largest |GPS - dead reckoning| (1 s EMA) /
+velocity chi (drone: 3.42 m / 5.50 -> dr_h 4.10 m, vel_h 6.60; per-mission q99 2.28 m / 4.93; rover, odometry:
+1.72 m / 9.01 -> 2.06 m, 10.81, its CUSUM fields kept from the earlier calibration, see the file's meta).
 Height cross-check hgt_h (issue #5, baro ramps; detector._hgt_off): the same margin x the sample maximum of each
 mission's largest |GPS height - baro| (3 s EMA). Drone: 1.32 m -> hgt_h 1.58 m (per-mission median 0.62, q99 1.12), from
 a fresh 1024-mission run (seed 0) whose other fields had moved with later autopilot changes and were not taken

@@ -10,9 +10,9 @@ temporal-free parts of the formula stay [..., T] arrays (one op per node) and, f
 is a list of T arrays [...] (positions oldest first): suffix chains, van Herk / Gil-Werman blocks for the windows, the
 until recurrence, O(T) arrays per operator, each elementwise over the batch, which XLA fuses into one pass per trace.
 (Splitting the predicates per position too makes a program about twice the size, compiling more than twice as long
-for no quicker step; this form is a little quicker per drone env step than the array form, as quick on the rover, and
-compiles no slower.) The values are those of `offline.evaluate`: the same min / max / affine
-arithmetic per position (tests/test_stl_online.py).
+on the CPU and longer on the GPU, for a step only slightly quicker; this form is a little quicker per drone env step
+than the array form, as quick on the rover, and compiles no slower.) The values are those of `offline.evaluate`: the
+same min / max / affine arithmetic per position (tests/test_stl_online.py).
 """
 
 from __future__ import annotations
