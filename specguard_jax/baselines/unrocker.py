@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import controllers
 from specguard_jax import ekf as ekf_lib
 from specguard_jax.baselines import common
 from specguard_jax.baselines.common import adam_fit
@@ -154,8 +155,6 @@ ENV_OVERRIDES = (("control_mode", "autopilot"), ("detector", "residual"), ("dete
 
 def build(ctx):
   """Controller 'unrocker': train (or load from ctx.cache_dir) the DAE; deploy it in the loop (module doc)."""
-  from specguard_jax import controllers
-  from specguard_jax.baselines import common
   path = common.cache_path(ctx, "unrocker", "msgpack")
   if not os.path.exists(path):
     b = common.budget(ctx.train_budget)
