@@ -11,9 +11,9 @@ diag = diagnosis on the first alarm (after the diagnosis window) names the attac
 the confusion table below it counts, per row, the sensor blamed on those missions (SENSOR_NAMES columns).
 Attack magnitudes are drawn from the paper's Table 3 ranges (specguard_jax.attacks.BIAS_RANGES), random direction.
 
-  JAX_PLATFORMS=cpu python bench/detection.py --stealthy 10         # designed stealthy ramps (attacks.stealthy)
+  JAX_PLATFORMS=cpu python bench/detection.py --stealthy 10         # designed stealthy ramps (calibration.stealthy)
 
---stealthy S: per sensor, the fastest ramp `attacks.design_stealthy` finds to stay hidden S s from the calibrated
+--stealthy S: per sensor, the fastest ramp `stealthy.design_stealthy` finds to stay hidden S s from the calibrated
 detector (design missions), then its hidden time and that of a 4x faster ramp on held-out missions (those whose
 attack-free twin raised a false alarm left out; hidden times censored at the window S x (1 + margin) + 1 s).
 """
@@ -30,6 +30,7 @@ import numpy as np
 import envs
 from envs.missions import MissionConfig
 from specguard_jax import attacks
+from specguard_jax.calibration import stealthy
 from specguard_jax.detection import detector as det
 from specguard_jax.detection import traces
 from specguard_jax.types import SENSOR_NAMES
@@ -69,7 +70,8 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
     out = []
     for i in range(0, keys.shape[0], batch):
       sl = lambda x: x[i:i + batch]
-      out.append(jax.device_get(traces.record_ticks(env, keys[i:i + batch], jax.tree.map(sl, atk), n_ticks)))
+      out.append(jax.device_get(traces.tick_trace(envs.record(env, keys[i:i + batch], n_ticks, traces.RECORD_FIELDS,
+                                                                attacks=jax.tree.map(sl, atk)))))
     return jax.tree.map(lambda *x: np.concatenate(x), *out)
 
   t0 = time.time()
@@ -139,26 +141,26 @@ def stealthy_table(vehicle: str = "drone", hidden_s: float = 10.0, onset: float 
   mc = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(max_duration_s=80.0, min_duration_s=50.0)
   env = envs.make(vehicle, mission=mc)
   batch = (n_rates + 1) * n_design
-  n_ticks = attacks.window_ticks(env, onset, hidden_s * (1 + margin) + 1.0)
+  n_ticks = stealthy.window_ticks(env, onset, hidden_s * (1 + margin) + 1.0)
   t0 = time.time()
   k_cal, k_held = jax.random.split(jax.random.PRNGKey(seed + 1))
   base = det.DetectorConfig.drone() if vehicle == "drone" else det.DetectorConfig.rover()
-  r, f, _, _ = attacks.record_residuals(env, base, jax.random.split(k_cal, batch), free_attacks(batch), n_ticks, batch)
+  r, f, _, _ = stealthy.record_residuals(env, base, jax.random.split(k_cal, batch), free_attacks(batch), n_ticks, batch)
   cfg = det.calibrate(base, r, f, target_fpr)
   keys = jax.random.split(k_held, n_held)
-  hid, fa = attacks.hidden_times(cfg, *attacks.record_residuals(env, cfg, keys, free_attacks(n_held), n_ticks, batch),
+  hid, fa = stealthy.hidden_times(cfg, *stealthy.record_residuals(env, cfg, keys, free_attacks(n_held), n_ticks, batch),
                                  0.0)
   ok = ~fa
   rows = []
   for s, b in STEALTHY_BIAS[vehicle].items():
-    d = attacks.design_stealthy(env, cfg, s, b, hidden_s, onset, n_rates=n_rates, n_missions=n_design, margin=margin,
+    d = stealthy.design_stealthy(env, cfg, s, b, hidden_s, onset, n_rates=n_rates, n_missions=n_design, margin=margin,
                                 seed=seed, batch=batch)
     row = {"sensor": s, "bias": b, "rate": d.rate, "ramp_s": d.ramp_time, "feasible": d.feasible}
     if d.feasible:
       i = int(np.searchsorted(d.rates, d.rate))
       fast = d.schedule.replace(ramp_time=d.schedule.ramp_time / 4.0)
       sched = jax.tree.map(lambda a, c: jnp.stack([a] * n_held + [c] * n_held), d.schedule, fast)
-      h, _ = attacks.hidden_times(cfg, *attacks.record_residuals(env, cfg, jnp.concatenate([keys, keys]), sched,
+      h, _ = stealthy.hidden_times(cfg, *stealthy.record_residuals(env, cfg, jnp.concatenate([keys, keys]), sched,
                                                                   n_ticks, batch), onset)
       hd, hf = h[:n_held][ok], h[n_held:][ok]
       row.update(design_min=float(d.hidden[i, ~d.dropped].min()), held_min=float(hd.min()),
@@ -172,7 +174,7 @@ def stealthy_table(vehicle: str = "drone", hidden_s: float = 10.0, onset: float 
           f"{'held_ok':>7s} {'4x_med':>6s} {'4x_max':>6s}")
     for w in rows:
       if not w["feasible"]:
-        print(f"{w['sensor']:7s} {str(w['bias']):>18s}  infeasible: no rate in {attacks.RATE_RANGES[w['sensor']]}")
+        print(f"{w['sensor']:7s} {str(w['bias']):>18s}  infeasible: no rate in {stealthy.RATE_RANGES[w['sensor']]}")
         continue
       print(f"{w['sensor']:7s} {str([round(x, 2) for x in w['bias']]):>18s} {w['rate']:9.4g} {w['ramp_s']:7.1f} "
             f"{w['design_min']:10.2f} {w['held_min']:8.2f} {w['held_ok']:7.2f} {w['fast_med']:6.2f} "

@@ -3,7 +3,7 @@ overt GPS and gyroscope attacks, for the EKF (sensor fusion), a denoising autoen
 selective state reconstruction (specguard_jax/estimation).
 
 Protocol (open-loop replay): attack-free drone missions are flown by the autopilot in several worlds
-(traces.record); attacks are then applied to the recorded sensor streams and replayed through a fresh EKF, the DAE
+(envs.record); attacks are then applied to the recorded sensor streams and replayed through a fresh EKF, the DAE
 (fed that EKF's input vector) and the reconstruction (alarm = the attack window, i.e. an oracle detector without
 delay; the diagnosis names the attacked sensor). All three are scored against the same true trajectory over the
 attack window. Dynamics model and DAE are trained on separate missions (with their own random attacks for the DAE).
@@ -90,7 +90,7 @@ def main(argv=None):
 
   def rec(k, n):
     ids = jnp.asarray([wid[i % len(wid)] for i in range(n)], jnp.int32)
-    return jax.block_until_ready(traces.record(env, jax.random.split(k, n), ids, n_ticks))
+    return jax.block_until_ready(envs.record(env, jax.random.split(k, n), n_ticks, traces.RECORD_FIELDS, world_ids=ids))
 
   fit_tr = rec(k_fit, a.fit_missions)
   test_tr = rec(k_test, a.missions)

@@ -1,8 +1,14 @@
-"""Vehicles, worlds and missions. `envs.make(vehicle, world=..., **overrides)` returns a brax Env."""
+"""Vehicles, worlds and missions as MJX envs.
+
+`envs.make(vehicle, world=..., **EnvConfig fields)` returns a brax Env; `envs.record(env, keys, n_ticks, fields)`
+flies a batch through the env's autopilot ticks and records chosen fields; `envs.fly_batch` flies a batch of
+episodes under a policy (envs/rollout.py).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 
 with contextlib.redirect_stdout(io.StringIO()):
@@ -10,7 +16,13 @@ with contextlib.redirect_stdout(io.StringIO()):
   # the CLIs' --json output.
   from mujoco import mjx as _mjx  # noqa: F401
 
+from envs.base import EnvConfig  # noqa: E402
+from envs.drone import DroneEnv  # noqa: E402
+from envs.rollout import fly_batch, record  # noqa: E402,F401
+from envs.rover import RoverEnv  # noqa: E402
+
 VEHICLES = ("drone", "rover")
+_ENVS = {"drone": DroneEnv, "rover": RoverEnv}
 
 
 def make(vehicle: str, world: str = "suburban_residential", **overrides):
@@ -19,18 +31,10 @@ def make(vehicle: str, world: str = "suburban_residential", **overrides):
   `overrides` are fields of envs.base.EnvConfig (e.g. control_mode='override', ticks_per_step=5, mission=...).
   Raises ValueError with one line naming the problem for an unknown vehicle, world or field.
   """
-  import dataclasses
-
-  from envs.base import EnvConfig
   if vehicle not in VEHICLES:
     raise ValueError(f"unknown vehicle {vehicle!r}; choose one of {', '.join(VEHICLES)}")
   fields = {f.name for f in dataclasses.fields(EnvConfig)}
   bad = sorted(set(overrides) - fields)
   if bad:
     raise ValueError(f"unknown env option(s) {', '.join(bad)}; valid: {', '.join(sorted(fields))}")
-  config = EnvConfig(world=world, **overrides)
-  if vehicle == "drone":
-    from envs.drone import DroneEnv
-    return DroneEnv(config)
-  from envs.rover import RoverEnv
-  return RoverEnv(config)
+  return _ENVS[vehicle](EnvConfig(world=world, **overrides))

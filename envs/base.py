@@ -39,6 +39,7 @@ from specguard_jax import rewards as rewards_lib
 from specguard_jax import sensors as sensors_lib
 from specguard_jax import specs as specs_lib
 from specguard_jax.autopilot import navigator as nav_lib
+from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
@@ -280,9 +281,8 @@ class RAVEnv(Env):
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
     self.recovery = None
-    if config.recovery_estimator != "none":   # prior-work baseline estimator (specguard_jax.baselines.hooks)
-      from specguard_jax.baselines import hooks as baseline_hooks
-      self.recovery = baseline_hooks.make(self, config.recovery_estimator, config.recovery_model)
+    if config.recovery_estimator != "none":   # prior-work baseline estimator (specguard_jax.estimation.hooks)
+      self.recovery = estimator_hooks.make(self, config.recovery_estimator, config.recovery_model)
     if config.reconstruction:
       n_u = 4 if self.vehicle == "drone" else 2
       self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)

@@ -17,6 +17,14 @@ import json
 import sys
 import time
 
+import envs
+from envs import mission_files
+from envs import missions as missions_lib
+from envs import rollout
+from envs import worlds as worlds_lib
+from envs.plotting import plot_mission
+from specguard_jax import attacks
+
 
 def _parser():
   p = argparse.ArgumentParser(prog="python -m envs.fly", description=__doc__.split("\n\n")[0])
@@ -39,9 +47,6 @@ def _parser():
 
 def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt"):
   """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data)."""
-  import envs
-  from envs import missions as missions_lib
-  from specguard_jax import attacks
   overrides = {}
   if attack:
     names = tuple(a.strip() for a in attack.split(",") if a.strip())
@@ -62,14 +67,10 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
   import jax.numpy as jnp
   import numpy as np
 
-  from envs import rollout
-  from envs import worlds as worlds_lib
-
   env = env or make_env(vehicle, max_duration)
   world_id = worlds_lib.PRESET_NAMES.index(world)
   loaded = None
   if mission_file is not None:
-    from envs import mission_files
     loaded = mission_files.load_mission(mission_file, vehicle)
   if batch <= 0:
     batch = missions if jax.default_backend() != "cpu" else min(missions, 64)
@@ -110,7 +111,6 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
       "env_steps_per_s": steps_run / max(wall, 1e-9), "backend": jax.default_backend(),
   }
   if plot:
-    from envs.plotting import plot_mission
     one = jax.tree.map(lambda x: np.asarray(x[0]), first.info)
     tr = {k: np.asarray(v) for k, v in traj0.items()}
     tr["dt"] = env.dt
@@ -124,14 +124,13 @@ def main(argv=None):
   args = _parser().parse_args(argv)
   if args.missions < 1:
     _parser().error("--missions must be >= 1")
-  from envs import worlds
-  if args.world != "all" and args.world not in worlds.PRESETS:
-    _parser().error(f"unknown world {args.world!r}; choose 'all' or one of: {', '.join(worlds.PRESETS)}")
+  if args.world != "all" and args.world not in worlds_lib.PRESETS:
+    _parser().error(f"unknown world {args.world!r}; choose 'all' or one of: {', '.join(worlds_lib.PRESETS)}")
   if args.mission is not None:
     import os
     if not os.path.exists(args.mission):
       _parser().error(f"mission file not found: {args.mission}")
-  names = list(worlds.PRESETS) if args.world == "all" else [args.world]
+  names = list(worlds_lib.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
     env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type)

@@ -1,7 +1,10 @@
-"""Fly a batch of missions to completion in one jitted call (no auto-reset; finished envs freeze).
+"""Fly a batch of missions in one jitted call: the env's public ways to fly and record a batch.
 
-`lax.while_loop` stops as soon as every env is done (or `max_steps` is reached), so short missions don't pay for
-the longest possible episode. The true trajectory of one env (index `record`) is kept for plotting.
+- `fly_batch`: env steps under a policy until every env is done (no auto-reset; finished envs freeze);
+  `lax.while_loop` stops as soon as every env is done (or `max_steps` is reached), so short missions don't pay for
+  the longest possible episode. The true trajectory of env 0 is kept for plotting.
+- `record`: autopilot ticks for a fixed time, recording chosen per-tick (and per-env-step) fields: what detector
+  calibration, stealthy-attack design, dynamics fitting and the prior-work baselines learn from.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import jax.numpy as jnp
 from envs import missions as missions_lib
 from envs.base import tree_where
 from specguard_jax import attacks as attacks_lib
+from specguard_jax.autopilot import navigator as nav_lib
+from specguard_jax.estimation import traces as traces_lib
 
 EPISODE_FLAGS = ("complete", "collision", "crash", "fence_breach", "stall", "nan")
 
@@ -85,3 +90,127 @@ def summarize(state) -> dict:
   out["violations_per_spec"] = [int(x) for x in jnp.sum(violated, axis=0)]
   out["attacked"] = int(jnp.sum(ep["attacked"] > 0))
   return out
+
+
+# What `record` can record per autopilot tick (leaves [B, T, ...]). "Before" is the tick's start, "after" its end.
+TICK_FIELDS = {
+    "truth": "TrueState at the tick's start (what the sensors sample)",
+    "readings": "SensorReadings of the tick, after the attack",
+    "ekf": "the autopilot's EKFState after the tick ('ekf.<field>' records one field, e.g. 'ekf.pos')",
+    "controls": "actuator commands of the previous tick, which moved the truth to this tick's start "
+                "(estimation.traces.vehicle_controls: drone rotor thrusts [4] N, rover (throttle, steer) [2])",
+    "actuation": "the same commands as the residual detector's vehicle model takes them (drone rotors [4], rover "
+                 "(steer, throttle) [2])",
+    "time": "the navigator's clock after the tick (s)",
+    "start_time": "the navigator's clock at the tick's start (s): the attack clock of the tick",
+    "phase": "the navigator's mission phase after the tick (autopilot.navigator: TAKEOFF ... DONE)",
+    "attack_on": "whether the attack is active at the tick's start (bool)",
+    "alive": "after the tick the physics is finite, the mission not finished and (drone) nothing hit (bool; "
+             "not cumulative)",
+    "vel_nav": "the navigator's velocity setpoint of the tick (m/s), from its state at the tick's start and the "
+               "tick's EKF position",
+}
+# ... per env step (leaves [B, n_ticks // ticks_per_step, ...]), at the step's start.
+STEP_FIELDS = {"obs": "the policy observation [24] a policy deciding at this step would see"}
+# ... once per mission (leaves [B, ...]), at reset.
+INITIAL_FIELDS = {"ekf": "the autopilot's EKFState at reset (before the first tick)"}
+
+
+def _check_fields(names, table, kind: str) -> None:
+  for name in names:
+    if name.split(".")[0] not in table:
+      raise ValueError(f"unknown {kind} field {name!r}; choose from {', '.join(table)}")
+
+
+def record(env, keys, n_ticks: int, fields, *, step_fields=(), initial_fields=(), world_ids=None, attacks=None):
+  """Fly len(keys) missions for `n_ticks` autopilot ticks with the autopilot in control (no policy, no override) and
+  record the chosen fields. One jitted call (a `lax.scan` over ticks, vmapped over missions); compiled once per
+  (env, n_ticks, field names).
+
+  keys: [B] PRNG keys (mission, world draw, noise: `env.reset_in_world`; the tick noise from fold_in(key, 7)).
+  fields: names of TICK_FIELDS (or 'ekf.<field>'); step_fields: names of STEP_FIELDS (n_ticks must then be a multiple
+  of env.config.ticks_per_step); initial_fields: names of INITIAL_FIELDS.
+  world_ids: optional [B] int32 world preset ids (envs.worlds.PRESET_NAMES; None: the env's config).
+  attacks: optional batched AttackSchedule [B] (None: the one reset draws from the env's config.attack, or none).
+  Returns {name: leaves [B, n_ticks, ...]} for fields, {name: [B, n_steps, ...]} for step fields and
+  {"initial_<name>": [B, ...]} for initial fields. Missions that end keep being ticked (record 'alive' to mask them).
+  """
+  _check_fields(fields, TICK_FIELDS, "tick")
+  _check_fields(step_fields, STEP_FIELDS, "step")
+  _check_fields(initial_fields, INITIAL_FIELDS, "initial")
+  k = env.config.ticks_per_step
+  if step_fields and n_ticks % k:
+    raise ValueError(f"n_ticks ({n_ticks}) must be a multiple of ticks_per_step ({k}) to record step fields")
+  if world_ids is not None:
+    world_ids = jnp.asarray(world_ids, jnp.int32)
+  return _record(env, keys, world_ids, attacks, n_ticks=int(n_ticks), fields=tuple(fields),
+                 step_fields=tuple(step_fields), initial_fields=tuple(initial_fields))
+
+
+def _tick_field(env, name, attack, before, after):
+  """One TICK_FIELDS entry from the (phys, sim) before and after a tick."""
+  sim0, (phys1, sim1) = before[1], after
+  if name == "truth":
+    return sim0["truth"]
+  if name == "readings":
+    return sim1["readings"]
+  if name == "ekf":
+    return sim1["ekf"]
+  if name.startswith("ekf."):
+    return getattr(sim1["ekf"], name[4:])
+  if name == "controls":
+    return traces_lib.vehicle_controls(env.vehicle, sim0)
+  if name == "actuation":
+    return env._actuation(sim0)
+  if name == "time":
+    return sim1["nav"].time
+  if name == "start_time":
+    return sim0["nav"].time
+  if name == "phase":
+    return sim1["nav"].phase
+  if name == "attack_on":
+    return jnp.zeros((), bool) if attack is None else attacks_lib.attack_active(attack, sim0["nav"].time)
+  if name == "alive":
+    ok = jnp.all(jnp.isfinite(phys1.qpos)) & (sim1["nav"].phase != nav_lib.DONE)
+    return ok & ~sim1["vehicle"]["hit"] if env.vehicle == "drone" else ok
+  assert name == "vel_nav", name
+  _, vel_nav, _ = nav_lib.nav_step(env._nav_params(), sim0["nav"], before[2], sim1["ekf"].pos,
+                                   env._vehicle_landed(sim0), env.config.tick_dt)
+  return vel_nav
+
+
+@functools.partial(jax.jit, static_argnames=("env", "n_ticks", "fields", "step_fields", "initial_fields"))
+def _record(env, keys, world_ids, attacks, *, n_ticks, fields, step_fields, initial_fields):
+  k = env.config.ticks_per_step
+  no_override = jnp.zeros((), bool)
+
+  def one(key, world_id, attack):
+    state = env.reset_in_world(key, world_id, None, attack)
+    info = state.info
+    mission, world = info["mission"], info["world"]
+    if attack is None and env.config.attack is not None:   # the attack reset drew from the config
+      attack = info["attack"]
+
+    def tick(carry, kt):
+      phys, sim = carry
+      after = env._tick(phys, sim, mission, world, jnp.zeros(3), no_override, kt, attack)
+      return after, {f: _tick_field(env, f, attack, (phys, sim, mission), after) for f in fields}
+
+    ticks = jax.random.split(jax.random.fold_in(key, 7), n_ticks)
+    carry = (state.pipeline_state, info["sim"])
+    if step_fields:
+      def step(carry, ks):
+        obs = {"obs": env._observation(world, mission, carry[1])} if "obs" in step_fields else {}
+        carry, out = jax.lax.scan(tick, carry, ks)
+        return carry, (obs, out)
+
+      _, (per_step, out) = jax.lax.scan(step, carry, ticks.reshape((n_ticks // k, k) + ticks.shape[1:]))
+      out = jax.tree.map(lambda a: a.reshape((n_ticks,) + a.shape[2:]), out)
+      out.update(per_step)
+    else:
+      _, out = jax.lax.scan(tick, carry, ticks)
+    if "ekf" in initial_fields:
+      out["initial_ekf"] = info["sim"]["ekf"]
+    return out
+
+  return jax.vmap(one)(keys, world_ids, attacks)

@@ -30,6 +30,10 @@ from typing import Any, Callable
 
 import jax.numpy as jnp
 
+from specguard_jax import export
+from specguard_jax.ppo import config as config_lib
+from specguard_jax.ppo.iteration import DeterministicPolicy
+
 DEFAULT_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
 
 
@@ -123,7 +127,6 @@ def load_run_config(run_dir: str):
   """TrainConfig of a train.py run dir (config.json); NotAvailable when the run is missing or unreadable.
   Its EKF kernel choice (fused_ekf, train.py's default on Hopper GPUs) is dropped: a training speed setting for the
   same filter, which evaluation does not use, so that a GPU-trained run evaluates on any machine."""
-  from specguard_jax.ppo import config as config_lib
   path = os.path.join(run_dir, "config.json")
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
@@ -145,8 +148,6 @@ def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
 
 def load_run_policy(run_dir: str):
   """(DeterministicPolicy, params {'policy','mean','std'}, TrainConfig) of a train.py run dir."""
-  from specguard_jax import export
-  from specguard_jax.ppo.iteration import DeterministicPolicy
   cfg = load_run_config(run_dir)
   try:
     policy, params, norm, speeds, clip = export.load_policy(run_dir)

@@ -48,6 +48,7 @@ from envs import missions as missions_lib
 from envs.base import tree_where
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import math3d
+from specguard_jax import metrics
 
 BIG = 1e9
 TRAJ_FIELDS = ("x", "y", "z", "est_x", "est_y", "est_z", "yaw", "est_yaw", "altitude", "alarm", "override", "time")
@@ -291,7 +292,6 @@ def evaluate(env, policy, policy_params, *, missions: int = 1000, settings=None,
   table violated), rsr (specguard_jax.metrics: the paper's recovery success: complete, within 5 m of the last
   waypoint, no crash/collision/stall), complete, collision, crash, stall, fence_breach, attacked, unfinished,
   detected, violations_per_spec; plus '_steps'."""
-  from specguard_jax import metrics
   settings = _as_settings(settings or default_settings())
   rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s, cache=False)
   crit = np.asarray(env.spec_table.critical, bool)

@@ -5,8 +5,8 @@ import importlib
 import pytest
 
 
-@pytest.mark.parametrize("module", ["train", "evaluate", "envs.fly", "specguard_jax.estimation.model_file",
-                                    "specguard_jax.detection.preset_file"])
+@pytest.mark.parametrize("module", ["train", "evaluate", "envs.fly", "specguard_jax.calibration.dynamics_fit",
+                                    "specguard_jax.calibration.detector_presets"])
 def test_help_prints_usage_and_exits_0(module, capsys):
   main = importlib.import_module(module).main
   with pytest.raises(SystemExit) as e:

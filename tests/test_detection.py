@@ -45,7 +45,8 @@ def run():
       bias = OVERT[s] if p == "overt" else STEALTHY[s]
       sched.append(attacks.schedule_for(s, bias, ONSET, DURATION, p, ramp_time=20.0))
   atk = _stack(sched)
-  tr = traces.record_ticks(env, jax.random.split(jax.random.PRNGKey(42), len(cells)), atk, N_TICKS)
+  tr = traces.tick_trace(envs.record(env, jax.random.split(jax.random.PRNGKey(42), len(cells)), N_TICKS,
+                                             traces.RECORD_FIELDS, attacks=atk))
   cal = jax.tree.map(lambda x: x[:N_CAL], tr)
   rest = jax.tree.map(lambda x: x[N_CAL:], tr)
   base = detection.DetectorConfig.drone(calibrated=False)

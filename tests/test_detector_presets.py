@@ -98,7 +98,8 @@ def test_no_false_alarm_on_held_out_missions(vehicle):
   spoof = attacks.schedule_for("gps", [20.0, 10.0, 0.0], onset=ONSET, duration=10.0)
   sched = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.asarray(v).dtype) for v in x]), *free, spoof)
   keys = jax.random.split(jax.random.PRNGKey(2024), N_FREE + 1)
-  tr = traces.record_ticks(env, keys, sched, int(round(SECONDS / env.config.tick_dt)))
+  tr = traces.tick_trace(envs.record(env, keys, int(round(SECONDS / env.config.tick_dt)), traces.RECORD_FIELDS,
+                                             attacks=sched))
   out = jax.device_get(traces.run_detector(cfg, tr, env.config.tick_dt))
   valid, t = np.asarray(tr.valid), np.asarray(tr.time)
   assert not valid[:N_FREE, -1].any()                            # flown whole (mission done before SECONDS)

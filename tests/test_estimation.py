@@ -23,7 +23,8 @@ def data():
   env = envs.make("drone",
                   mission=MissionConfig.drone(max_duration_s=70.0, min_duration_s=40.0))
   b = 4
-  tr = traces.record(env, jax.random.split(jax.random.PRNGKey(3), b), jnp.array([0, 1, 2, 3], jnp.int32), T)
+  tr = envs.record(env, jax.random.split(jax.random.PRNGKey(3), b), T, traces.RECORD_FIELDS,
+                   world_ids=jnp.array([0, 1, 2, 3], jnp.int32))
   fit = jax.tree.map(lambda a: a[:3], tr)
   test = jax.tree.map(lambda a: a[3:], tr)
   params = dyn.fit_dynamics(fit)

@@ -23,7 +23,7 @@ from specguard_jax.types import SensorReadings
 DT = 0.02
 ONSET, DURATION, RAMP = 22.0, 30.0, 20.0
 SECONDS = 60.0
-GPS_BIAS = [16.0, 4.0, 0.0]   # 0.82 m/s: under the ~1.1 m/s the residual CUSUM alone catches (attacks/stealthy.py)
+GPS_BIAS = [16.0, 4.0, 0.0]   # 0.82 m/s: under the ~1.1 m/s the residual CUSUM alone catches (calibration/stealthy.py)
 FLOW_BIAS = [1.0, 0.0]        # 0.05 rad/s^2
 ROWS = ("gps", "flow", "free")
 GPS, FLOW = attacks.SENSOR_NAMES.index("gps"), attacks.SENSOR_NAMES.index("flow")
@@ -82,7 +82,7 @@ def test_stealthy_gps_ramp_flagged_by_the_cross_check_and_blamed_on_the_gps(dron
   assert k is not None
   delay = o["t"][i, k] - ONSET
   # The cross-checks raised it while the residual CUSUM was still quiet (a 0.82 m/s ramp hides from it, see
-  # attacks/stealthy.py), within seconds and a few metres of drift.
+  # calibration/stealthy.py), within seconds and a few metres of drift.
   assert o["xraised"][i, k] and o["smax"][i, k] < 1.0, (o["xraised"][i, k], o["smax"][i, k])
   assert delay < 5.0, delay
   assert np.linalg.norm(o["gps"][i, k] - o["truth"][i, k]) < 5.0

@@ -11,6 +11,7 @@ import pytest
 import envs
 from envs.missions import MissionConfig
 from specguard_jax import attacks
+from specguard_jax.calibration import stealthy
 from specguard_jax import detection
 from specguard_jax.detection import traces
 
@@ -27,14 +28,14 @@ FASTER = 4.0
 def run():
   t0 = time.time()
   env = envs.make("drone", mission=MissionConfig.drone(max_duration_s=80.0, min_duration_s=50.0))
-  n_ticks = attacks.window_ticks(env, ONSET, HIDDEN * (1 + MARGIN) + 1.0)
+  n_ticks = stealthy.window_ticks(env, ONSET, HIDDEN * (1 + MARGIN) + 1.0)
   # The ramps are designed against the residual CUSUM alone (the GPS cross-check alarm, detector.position_check,
   # catches a hidden GPS ramp by design): the replay check below compares the CUSUM with detector_update's alarm.
   base = detection.DetectorConfig.drone(xcheck=False)
   free = jax.tree.map(lambda x: jnp.broadcast_to(x, (BATCH,) + x.shape), attacks.no_attack())
-  cal = attacks.record_residuals(env, base, jax.random.split(jax.random.PRNGKey(100), BATCH), free, n_ticks, BATCH)
+  cal = stealthy.record_residuals(env, base, jax.random.split(jax.random.PRNGKey(100), BATCH), free, n_ticks, BATCH)
   cfg = detection.calibrate(base, cal[0], cal[1], target_fpr=0.05)
-  designs = {s: attacks.design_stealthy(env, cfg, s, b, HIDDEN, ONSET, n_rates=N_RATES, n_missions=N_DESIGN,
+  designs = {s: stealthy.design_stealthy(env, cfg, s, b, HIDDEN, ONSET, n_rates=N_RATES, n_missions=N_DESIGN,
                                         margin=MARGIN, seed=0, batch=BATCH) for s, b in BIAS.items()}
   # Held-out missions (other seed): each attack-free, under each feasible design, and under its 4x faster ramp.
   rows = [attacks.no_attack()]
@@ -44,12 +45,13 @@ def run():
   sched = jax.tree.map(lambda *x: jnp.repeat(jnp.stack([jnp.asarray(v, jnp.asarray(v).dtype) for v in x]), N_HELD,
                                              axis=0), *rows)
   keys = jnp.tile(jax.random.split(jax.random.PRNGKey(1000), N_HELD), (len(rows), 1))
-  r, fresh, t, valid = attacks.record_residuals(env, cfg, keys, sched, n_ticks, BATCH)
+  r, fresh, t, valid = stealthy.record_residuals(env, cfg, keys, sched, n_ticks, BATCH)
   onset = np.repeat(np.r_[0.0, [ONSET] * (len(rows) - 1)], N_HELD)
-  hidden, detected = attacks.hidden_times(cfg, r, fresh, t, valid, onset)
+  hidden, detected = stealthy.hidden_times(cfg, r, fresh, t, valid, onset)
   # The same first batch through the detector itself (detector_update on the recorded ticks), for the replay check.
   first = jax.tree.map(lambda x: x[:BATCH], sched)
-  alarm = np.asarray(traces.run_detector(cfg, traces.record_ticks(env, keys[:BATCH], first, n_ticks),
+  alarm = np.asarray(traces.run_detector(cfg, traces.tick_trace(envs.record(
+      env, keys[:BATCH], n_ticks, traces.RECORD_FIELDS, attacks=first)),
                                          env.config.tick_dt)["alarm"])
   replay = {"alarm": alarm, "time": t[:BATCH], "onset": onset[:BATCH], "hidden": hidden[:BATCH],
             "detected": detected[:BATCH]}
@@ -72,11 +74,11 @@ def run():
 def test_designed_ramp_stays_hidden_on_held_out_missions(run, sensor):
   d = run["designs"][sensor]
   if not d.feasible:
-    pytest.skip(f"no {sensor} ramp in {attacks.RATE_RANGES[sensor]} stays hidden {HIDDEN} s")
+    pytest.skip(f"no {sensor} ramp in {stealthy.RATE_RANGES[sensor]} stays hidden {HIDDEN} s")
   assert d.schedule.profile == attacks.PROFILES.index("stealthy")
   assert d.ramp_time == pytest.approx(np.linalg.norm(BIAS[sensor]) / d.rate, rel=1e-5)
   # Slower than the search range's top: the detector, not the range, set the rate.
-  assert d.rate < attacks.RATE_RANGES[sensor][1]
+  assert d.rate < stealthy.RATE_RANGES[sensor][1]
   ok = ~run["false_alarm"]                   # missions whose attack-free twin alarms are not the attack's doing
   assert ok.sum() >= N_HELD - 2, run["false_alarm"]
   designed = run["held"][sensor]["designed"][ok]
@@ -117,6 +119,6 @@ def test_replayed_cusum_matches_detector_update(run):
 def test_design_errors():
   env = object()
   with pytest.raises(ValueError, match="unknown sensor"):
-    attacks.design_stealthy(env, None, "lidar", [1.0], 5.0, 10.0)
+    stealthy.design_stealthy(env, None, "lidar", [1.0], 5.0, 10.0)
   with pytest.raises(ValueError, match="non-zero"):
-    attacks.design_stealthy(env, None, "gps", [0.0, 0.0, 0.0], 5.0, 10.0)
+    stealthy.design_stealthy(env, None, "gps", [0.0, 0.0, 0.0], 5.0, 10.0)

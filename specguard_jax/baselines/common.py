@@ -16,10 +16,13 @@ import functools
 import json
 import os
 
-import flax.serialization
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+import envs
+from envs.missions import MissionConfig
+from specguard_jax.estimation.tree_file import load_tree, save_tree  # noqa: F401 (the caches: common.save_tree)
 
 BUDGETS = ("ci", "full")
 
@@ -52,41 +55,7 @@ def cache_path(ctx, name: str, ext: str) -> str:
   return base + (f".{ext}" if ext else "")
 
 
-def save_tree(path: str, tree, meta: dict) -> None:
-  """msgpack of {'meta': json string, 'tree': pytree of arrays}, written atomically."""
-  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  blob = flax.serialization.msgpack_serialize({"meta": json.dumps(meta),
-                                               "tree": flax.serialization.to_state_dict(
-                                                   jax.tree.map(np.asarray, tree))})
-  tmp = path + ".tmp"
-  with open(tmp, "wb") as f:
-    f.write(blob)
-  os.replace(tmp, path)
-
-
-def load_tree(path: str, template=None):
-  """(tree, meta) from save_tree's file; restored into `template`'s structure when given. Missing, corrupt or
-  mismatched file -> one-line ValueError naming it."""
-  try:
-    with open(path, "rb") as f:
-      d = flax.serialization.msgpack_restore(f.read())
-    meta = json.loads(d["meta"])
-    tree = d["tree"]
-    if template is not None:
-      tree = flax.serialization.from_state_dict(template, tree)
-      bad = [(a.shape, b.shape) for a, b in zip(jax.tree.leaves(template), jax.tree.leaves(tree))
-             if np.shape(a) != np.shape(b)]
-      if bad or len(jax.tree.leaves(template)) != len(jax.tree.leaves(tree)):
-        raise ValueError(f"shapes {bad[:2]} do not match")
-  except Exception as e:  # noqa: BLE001 - msgpack/flax raise many unrelated types on corrupt input
-    raise ValueError(f"corrupt baseline cache {path}: {' '.join(f'{type(e).__name__}: {e}'.split())[:200]} "
-                     f"(delete it to retrain)") from None
-  return tree, meta
-
-
 def make_env(vehicle: str, worlds: tuple, seconds: float, **kw):
-  import envs
-  from envs.missions import MissionConfig
   mcfg = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(
       min_duration_s=seconds + 10.0, max_duration_s=seconds + 60.0)
   return envs.make(vehicle, worlds=tuple(worlds), mission=mcfg, **kw)
@@ -95,43 +64,15 @@ def make_env(vehicle: str, worlds: tuple, seconds: float, **kw):
 EKF_FIELDS = ("pos", "vel", "quat", "gyro_bias", "accel_bias")
 
 
-@functools.partial(jax.jit, static_argnames=("env", "n_steps"))
 def _record(env, keys, n_steps: int):
   """Attack-free flights of len(keys) missions for n_steps env steps (module doc); per-tick leaves [B, T, ...]
   (T = n_steps * ticks_per_step), 'obs' [B, n_steps, 24] (policy observation at each env step's start), 'ekf0'
   the EKF state before the first tick [B, ...]."""
-  from specguard_jax.autopilot import navigator as nav_lib
-  from specguard_jax.estimation import traces
-  k = env.config.ticks_per_step
-  state = jax.vmap(env.reset)(keys)
-
-  def one(state, key):
-    info = state.info
-    mission, world = info["mission"], info["world"]
-
-    def tick(carry, kt):
-      data, sim = carry
-      u_prev = traces.vehicle_controls(env.vehicle, sim)
-      landed = env._vehicle_landed(sim)
-      data2, sim2 = env._tick(data, sim, mission, world, jnp.zeros(3), jnp.zeros((), bool), kt, None)
-      _, vel_nav, _ = nav_lib.nav_step(env._nav_params(), sim["nav"], mission, sim2["ekf"].pos, landed,
-                                       env.config.tick_dt)
-      e = sim2["ekf"]
-      out = {"truth": sim["truth"], "readings": sim2["readings"], "ekf": {f: getattr(e, f) for f in EKF_FIELDS},
-             "controls": u_prev, "time": sim2["nav"].time, "phase": sim2["nav"].phase, "vel_nav": vel_nav}
-      return (data2, sim2), out
-
-    def step(carry, ks):
-      obs = env._observation(world, mission, carry[1])   # what a policy deciding at this step would see
-      carry, out = jax.lax.scan(tick, carry, ks)
-      return carry, (obs, out)
-
-    ks = jax.random.split(key, n_steps * k).reshape((n_steps, k) + key.shape)
-    _, (obs, tr) = jax.lax.scan(step, (state.pipeline_state, info["sim"]), ks)
-    return dict(jax.tree.map(lambda a: a.reshape((n_steps * k,) + a.shape[2:]), tr), obs=obs)
-
-  tr = jax.vmap(one)(state, jax.vmap(lambda kk: jax.random.fold_in(kk, 7))(keys))
-  return dict(tr, ekf0=state.info["sim"]["ekf"])
+  fields = ("truth", "readings") + tuple(f"ekf.{f}" for f in EKF_FIELDS) + ("controls", "time", "phase", "vel_nav")
+  rec = envs.record(env, keys, n_steps * env.config.ticks_per_step, fields, step_fields=("obs",),
+                    initial_fields=("ekf",))
+  ekf = {f: rec.pop(f"ekf.{f}") for f in EKF_FIELDS}
+  return dict(rec, ekf=ekf, ekf0=rec.pop("initial_ekf"))
 
 
 @functools.lru_cache(maxsize=2)

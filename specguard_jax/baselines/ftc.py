@@ -21,7 +21,10 @@ from __future__ import annotations
 import dataclasses
 import os
 
+from specguard_jax import controllers
+from specguard_jax.baselines import common
 from specguard_jax.ppo import config as config_lib
+from specguard_jax.ppo import runner
 
 FULL_PHASE2_STEPS = 40_000_000
 
@@ -35,19 +38,14 @@ def train_config(ctx) -> config_lib.TrainConfig:
                                   phase2_steps=256, hidden=(32, 32), sg=tiny, aa=tiny, checkpoint_every_s=1e9,
                                   **common_kw).validate()
   if ctx.train_budget == "full":
-    from specguard_jax.ppo.runner import default_sizes
-    sizes = dict(default_sizes("gpu"), phase1_steps=0, phase2_steps=FULL_PHASE2_STEPS, eval_missions=0)
+    sizes = dict(runner.default_sizes("gpu"), phase1_steps=0, phase2_steps=FULL_PHASE2_STEPS, eval_missions=0)
     return config_lib.TrainConfig(**{**sizes, **common_kw}).validate()
-  from specguard_jax.baselines import common
   common.budget(ctx.train_budget)   # raises the one-line error
   raise AssertionError
 
 
 def build(ctx):
   """Controller 'ftc': train (or load from ctx.cache_dir/ftc_<vehicle>_<budget>_s<seed>/) and deploy."""
-  from specguard_jax import controllers
-  from specguard_jax.baselines import common
-  from specguard_jax.ppo import runner
   run_dir = common.cache_path(ctx, "ftc", "")
   cfg = train_config(ctx)
   if not os.path.exists(os.path.join(run_dir, "summary.json")):

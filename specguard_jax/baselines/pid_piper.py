@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax import controllers
+from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.baselines import common
 
 HIDDEN = (128, 128)
@@ -34,7 +36,6 @@ class FFCPolicy:
 
 def step_samples(env, tr):
   """(obs [B, S, 24], target setpoint [B, S, 3], mask [B, S]) per env step from common.flights traces."""
-  from specguard_jax.autopilot import navigator as nav_lib
   k = env.config.ticks_per_step
   obs = np.asarray(tr["obs"])
   b, s = obs.shape[:2]
@@ -93,7 +94,6 @@ ENV_OVERRIDES = (("control_mode", "reactive"), ("override_frame", "world"), ("ov
 
 def build(ctx):
   """Controller 'pid_piper': fit (or load from ctx.cache_dir) the FFC; fly it while the alarm is up."""
-  from specguard_jax import controllers
   path = common.cache_path(ctx, "pid_piper", "msgpack")
   if not os.path.exists(path):
     b = common.budget(ctx.train_budget)

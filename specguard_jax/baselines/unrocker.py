@@ -18,7 +18,6 @@ error (against the attacked input's own error) is stored in the cache's meta.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import os
 
@@ -26,54 +25,13 @@ import jax
 import jax.numpy as jnp
 
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import controllers
 from specguard_jax import ekf as ekf_lib
-from specguard_jax import math3d
 from specguard_jax.baselines import common
 from specguard_jax.baselines.common import adam_fit
-from specguard_jax.baselines.hooks import Estimator
 from specguard_jax.estimation import dae as dae_lib
+from specguard_jax.estimation.dae import load_dae
 from specguard_jax.estimation import recon
-
-
-@dataclasses.dataclass(eq=False)
-class DAEEstimator(Estimator):
-  cfg: dae_lib.DAEConfig
-  params: dae_lib.DAEParams
-
-  @classmethod
-  def create(cls, env, model_path: str = ""):
-    del env
-    if not model_path:
-      raise ValueError("recovery_estimator='dae' needs recovery_model= a DAE file (specguard_jax.baselines.unrocker)")
-    cfg, params = load_dae(model_path)
-    return cls(cfg, params)
-
-  def init(self, ekf, readings):
-    return jnp.zeros(())
-
-  def post_ekf(self, sim, est, readings):
-    alarm = jnp.asarray(sim["det"].alarm) > 0
-    x_hat = dae_lib.dae_apply(self.cfg, self.params, recon.input_vector(est, readings))
-    den = est.replace(pos=x_hat[0:3], vel=x_hat[3:6], quat=math3d.euler_to_quat(x_hat[9:12]))
-    return sim, jax.tree.map(lambda a, b: jnp.where(alarm, a, b), den, est)
-
-
-def _template(cfg: dae_lib.DAEConfig):
-  net = dae_lib._DAE(cfg.hidden, cfg.bottleneck, recon.N_INPUT)
-  p = net.init(jax.random.PRNGKey(0), jnp.zeros((1, recon.N_INPUT)))
-  return dae_lib.DAEParams(net=p, mean=jnp.zeros(recon.N_INPUT), std=jnp.ones(recon.N_INPUT))
-
-
-def load_dae(path: str):
-  """(DAEConfig, DAEParams) from a cache file written by build; one-line ValueError if corrupt."""
-  from specguard_jax.baselines import common
-  _, meta = common.load_tree(path)
-  try:
-    cfg = dae_lib.DAEConfig(hidden=tuple(meta["hidden"]), bottleneck=int(meta["bottleneck"]))
-  except (KeyError, TypeError, ValueError) as e:
-    raise ValueError(f"corrupt baseline cache {path}: bad DAE config ({e})") from None
-  tree, _ = common.load_tree(path, _template(cfg))
-  return cfg, jax.tree.map(jnp.asarray, tree)
 
 
 COMBOS = tuple((s, p) for s in attacks_lib.SENSOR_NAMES for p in attacks_lib.PROFILES)
@@ -197,8 +155,6 @@ ENV_OVERRIDES = (("control_mode", "autopilot"), ("detector", "residual"), ("dete
 
 def build(ctx):
   """Controller 'unrocker': train (or load from ctx.cache_dir) the DAE; deploy it in the loop (module doc)."""
-  from specguard_jax import controllers
-  from specguard_jax.baselines import common
   path = common.cache_path(ctx, "unrocker", "msgpack")
   if not os.path.exists(path):
     b = common.budget(ctx.train_budget)

@@ -1,10 +1,11 @@
-"""Record per-tick detector inputs from the real env ticks and replay detectors over them (benchmarks, tests).
+"""Per-tick detector inputs recorded from the real env ticks, and detectors replayed over them (calibration, design,
+benchmarks, tests).
 
-`record_ticks` resets a batch of envs and drives `env._tick` (sensors -> attack -> EKF -> navigator -> autopilot ->
-MJX) in one `lax.scan` of fixed length, keeping what a detector wired into the tick would see: the attacked
-readings, the EKF state after the tick's update, the actuation that produced those readings, the tick's time and
-whether the attack was on. The env object is only duck-typed (envs.base.RAVEnv), so this module does not import
-envs.
+`envs.record(env, keys, n_ticks, RECORD_FIELDS, attacks=...)` flies a batch through the env's own ticks (sensors ->
+attack -> EKF -> navigator -> autopilot -> MJX) in one `lax.scan`; `tick_trace` turns its record into a `TickTrace`:
+what a detector wired into the tick would see (the attacked readings, the EKF state after the tick's update, the
+actuation that produced those readings, the tick's time, whether the attack was on, whether the mission is still
+valid). This module does not import envs: the caller records.
 """
 
 from __future__ import annotations
@@ -16,11 +17,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from specguard_jax import ekf as ekf_lib
-from specguard_jax.attacks import attacks as attacks_lib
-from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.detection import detector as det
-
-_DONE = nav_lib.DONE
 
 
 @struct.dataclass
@@ -35,44 +32,18 @@ class TickTrace:
   valid: jnp.ndarray
 
 
-def _actuation(env, sim):
-  veh = sim["vehicle"]
-  if env.vehicle == "drone":
-    return veh["rotors"]
-  return jnp.stack([veh["steer"], veh["throttle"]])
+# The envs.record fields a TickTrace is made of.
+RECORD_FIELDS = ("readings", "ekf", "actuation", "start_time", "attack_on", "alive")
 
 
-@functools.partial(jax.jit, static_argnames=("env", "n_ticks"))
-def record_ticks(env, keys, attacks, n_ticks: int, world_ids=None) -> TickTrace:
-  """keys [B] PRNG keys, attacks: batched AttackSchedule [B], world_ids: optional [B] int32 world preset ids
-  (envs.worlds.PRESET_NAMES; None: the env's config); returns a TickTrace with leaves [B, n_ticks, ...]."""
-
-  def one(key, attack, world_id):
-    state = env.reset_in_world(key, world_id, None, attack)
-    mission, world = state.info["mission"], state.info["world"]
-    zero = jnp.zeros(3)
-    no_override = jnp.zeros((), bool)
-
-    def body(carry, k):
-      data, sim, alive = carry
-      t = sim["nav"].time
-      act = _actuation(env, sim)
-      data, sim = env._tick(data, sim, mission, world, zero, no_override, k, attack)
-      ok = jnp.all(jnp.isfinite(data.qpos)) & (sim["nav"].phase != _DONE)
-      if env.vehicle == "drone":
-        ok = ok & ~sim["vehicle"]["hit"]
-      alive = alive & ok
-      out = TickTrace(readings=sim["readings"], ekf=sim["ekf"], actuation=act, time=t,
-                      attack_on=attacks_lib.attack_active(attack, t), valid=alive)
-      return (data, sim, alive), out
-
-    ks = jax.random.split(jax.random.fold_in(key, 7), n_ticks)
-    _, tr = jax.lax.scan(body, (state.pipeline_state, state.info["sim"], jnp.ones((), bool)), ks)
-    return tr
-
-  if world_ids is None:
-    return jax.vmap(lambda k, a: one(k, a, None))(keys, attacks)
-  return jax.vmap(one)(keys, attacks, jnp.asarray(world_ids, jnp.int32))
+@jax.jit
+def tick_trace(rec: dict) -> TickTrace:
+  """A TickTrace from `envs.record(..., RECORD_FIELDS, ...)` (leaves [B, T, ...]): time is the tick's start (the
+  attack clock); valid is 'alive' up to the first tick that is not (a mission that ended, crashed or went NaN stays
+  invalid)."""
+  valid = jax.lax.associative_scan(jnp.logical_and, rec["alive"], axis=1)
+  return TickTrace(readings=rec["readings"], ekf=rec["ekf"], actuation=rec["actuation"], time=rec["start_time"],
+                   attack_on=rec["attack_on"], valid=valid)
 
 
 def _slim_ekf(ekf):

@@ -1,4 +1,6 @@
-"""Denoising-autoencoder baseline (UnRocker-style sensor denoising), Flax + optax.
+"""Denoising-autoencoder baseline (UnRocker-style sensor denoising), Flax + optax, and its in-tick estimator
+(`DAEEstimator`: while the alarm is up the autopilot flies on the DAE's estimate; specguard_jax.baselines.unrocker
+trains and registers it).
 
 Maps the attacked input vector x'_t [15] (recon.INPUT_NAMES, from the attacked EKF) to the clean one, trained on
 (attacked, true) pairs. Per-feature standardisation, MLP encoder -> bottleneck -> decoder, residual output
@@ -15,6 +17,11 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+
+from specguard_jax import math3d
+from specguard_jax.estimation import recon
+from specguard_jax.estimation import tree_file
+from specguard_jax.estimation.estimator import Estimator
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,3 +88,44 @@ def train_dae(cfg: DAEConfig, x_noisy, x_clean, key) -> tuple[DAEParams, jax.Arr
 
   (params, _), losses = jax.lax.scan(body, (params, opt.init(params)), jax.random.split(k_batch, cfg.steps))
   return DAEParams(net=params, mean=mean, std=std), losses[-50:].mean()
+
+
+@dataclasses.dataclass(eq=False)
+class DAEEstimator(Estimator):
+  cfg: DAEConfig
+  params: DAEParams
+
+  @classmethod
+  def create(cls, env, model_path: str = ""):
+    del env
+    if not model_path:
+      raise ValueError("recovery_estimator='dae' needs recovery_model= a DAE file (specguard_jax.baselines.unrocker)")
+    cfg, params = load_dae(model_path)
+    return cls(cfg, params)
+
+  def init(self, ekf, readings):
+    return jnp.zeros(())
+
+  def post_ekf(self, sim, est, readings):
+    alarm = jnp.asarray(sim["det"].alarm) > 0
+    x_hat = dae_apply(self.cfg, self.params, recon.input_vector(est, readings))
+    den = est.replace(pos=x_hat[0:3], vel=x_hat[3:6], quat=math3d.euler_to_quat(x_hat[9:12]))
+    return sim, jax.tree.map(lambda a, b: jnp.where(alarm, a, b), den, est)
+
+
+def _template(cfg: DAEConfig):
+  net = _DAE(cfg.hidden, cfg.bottleneck, recon.N_INPUT)
+  p = net.init(jax.random.PRNGKey(0), jnp.zeros((1, recon.N_INPUT)))
+  return DAEParams(net=p, mean=jnp.zeros(recon.N_INPUT), std=jnp.ones(recon.N_INPUT))
+
+
+def load_dae(path: str):
+  """(DAEConfig, DAEParams) from a file written by specguard_jax.baselines.unrocker.build; one-line ValueError if
+  corrupt."""
+  _, meta = tree_file.load_tree(path)
+  try:
+    cfg = DAEConfig(hidden=tuple(meta["hidden"]), bottleneck=int(meta["bottleneck"]))
+  except (KeyError, TypeError, ValueError) as e:
+    raise ValueError(f"corrupt baseline cache {path}: bad DAE config ({e})") from None
+  tree, _ = tree_file.load_tree(path, _template(cfg))
+  return cfg, jax.tree.map(jnp.asarray, tree)

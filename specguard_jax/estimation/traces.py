@@ -1,4 +1,4 @@
-"""Attack-free trace recording by driving an env's `_tick` in a `lax.scan` (no env edits), and offline replay of
+"""Attack-free traces (recorded by `envs.record(env, keys, n_ticks, RECORD_FIELDS, ...)`) and the offline replay of
 attacked sensor streams through a fresh EKF.
 
 A trace holds, per autopilot tick k (leading axes [B, T] for a batch):
@@ -12,13 +12,15 @@ replayed (`replay_ekf`), so every estimator is scored on the same true trajector
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import ekf as ekf_lib
+
+
+# The envs.record fields of a trace (module doc).
+RECORD_FIELDS = ("truth", "readings", "ekf", "controls", "time", "phase")
 
 
 def vehicle_controls(vehicle: str, sim) -> jax.Array:
@@ -28,32 +30,6 @@ def vehicle_controls(vehicle: str, sim) -> jax.Array:
   if vehicle == "drone":
     return veh["rotors"]
   return jnp.stack([veh["throttle"], veh["steer"]])
-
-
-@functools.partial(jax.jit, static_argnames=("env", "n_ticks"))
-def record(env, keys, world_ids, n_ticks: int):
-  """Fly len(keys) attack-free missions for n_ticks autopilot ticks; returns the trace dict (leaves [B, T, ...])."""
-  state = jax.vmap(lambda k, w: env.reset_in_world(k, w))(keys, world_ids)
-
-  def one(state, key):
-    info = state.info
-    mission, world = info["mission"], info["world"]
-    no_override = jnp.zeros((), bool)
-
-    def tick(carry, k):
-      data, sim = carry
-      u_prev = vehicle_controls(env.vehicle, sim)
-      truth = sim["truth"]
-      data, sim = env._tick(data, sim, mission, world, jnp.zeros(3), no_override, k, None)
-      out = {"truth": truth, "readings": sim["readings"], "ekf": sim["ekf"], "controls": u_prev,
-             "time": sim["nav"].time, "phase": sim["nav"].phase}
-      return (data, sim), out
-
-    _, tr = jax.lax.scan(tick, (state.pipeline_state, info["sim"]), jax.random.split(key, n_ticks))
-    return tr
-
-  run_keys = jax.vmap(lambda k: jax.random.fold_in(k, 7))(keys)
-  return jax.vmap(one)(state, run_keys)
 
 
 def attacked_readings(readings, schedule, times):

@@ -27,6 +27,7 @@ from flax import struct
 
 import envs as envs_lib
 from envs.wrappers import AutoReset
+from specguard_jax import evaluation
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
@@ -438,7 +439,6 @@ def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:
 
 def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: int = 10_000) -> dict:
   """Held-out quality of the trained SpecGuard policy (specguard_jax.evaluation) in the run's deployment env."""
-  from specguard_jax import evaluation
   job = _heldout_job(cfg, sg_state, missions)
   return evaluation.evaluate(job["env"], job["policy"], job["policy_params"], missions=missions, seed=seed)
 
@@ -446,6 +446,5 @@ def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: 
 def precompile_heldout(cfg: TrainConfig, sg_state, missions: int) -> None:
   """Compile `heldout`'s rollout for an agent state of these shapes (abstract leaves are fine) and keep it for
   heldout's call (evaluation.precompile); used by the runner's compile-ahead thread (ppo/ahead.py)."""
-  from specguard_jax import evaluation
   job = _heldout_job(cfg, sg_state, missions)
   evaluation.precompile([dict(job, settings=evaluation.default_settings())], workers=1)

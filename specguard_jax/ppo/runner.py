@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax import export
 from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
@@ -389,7 +390,6 @@ def _compile_ahead(ahead, cfg, mesh, phases, start: int, keys, main: bool) -> No
 
 def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   """Save the SpecGuard policy (msgpack + config) and its ONNX with normalisation folded in; returns parity/latency."""
-  from specguard_jax import export
   policy = it.sg_policy(cfg)
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}

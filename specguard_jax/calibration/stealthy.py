@@ -19,7 +19,7 @@ Why empirical. The detector's residuals do not respond to a ramp in one way that
     bias crosses a detectable level b* and the hidden time is ~ b* / rho (drone: b* ~ 4 m baro, ~0.4 rad mag,
     ~0.22 rad/s flow, ~0.07 rad/s gyro z, ~1 m/s^2 accel z).
 The residual goes through the EKF, the autopilot and the vehicle (closed loop) in both cases, so the hidden time of
-a rate is measured, not modelled: one batched, jitted simulation (`detection.traces.record_ticks`, a `lax.scan` over
+a rate is measured, not modelled: one batched, jitted simulation (`envs.record`, a `lax.scan` over
 the env's own ticks, no Python loop over time) of a grid of rates x a few design missions, and the CUSUM replayed
 over the recorded residuals with the detector's scale, k, h (`hidden_times`; it finds detector_update's alarm to the
 tick, so one recording serves any thresholds). The grid is geometric over the sensor's `RATE_RANGES`; the fastest
@@ -61,7 +61,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import envs
 from specguard_jax.attacks import attacks as attacks_lib
+from specguard_jax.detection import detector as det
+from specguard_jax.detection import traces
 
 # Default ramp-rate search range per sensor (|db/dt| in the sensor's bias units per s).
 RATE_RANGES = {
@@ -117,18 +120,17 @@ def record_residuals(env, cfg, keys, schedules: attacks_lib.AttackSchedule, n_ti
   Returns numpy (r [N, T, C] raw |residual|, fresh [N, T, C] fed & mission valid, time [N, T] s, valid [N, T]),
   the inputs of `detection.calibrate` and `hidden_times`.
   """
-  from specguard_jax.detection import traces   # noqa: PLC0415 (detection imports attacks)
   n = int(keys.shape[0])
   batch = batch or n
   mcfg = _model_cfg(cfg)
-  # Strong dtypes (no_attack() has weakly typed leaves): every schedule batch hits the same compiled record_ticks.
+  # Strong dtypes (no_attack() has weakly typed leaves): every schedule batch hits the same compiled recording.
   schedules = jax.tree.map(lambda x: jnp.asarray(x, jnp.asarray(x).dtype), schedules)
   out = []
   for i in range(0, n, batch):
     idx = np.minimum(np.arange(i, i + batch), n - 1)
     k = keys[idx]
     s = jax.tree.map(lambda x: x[idx], schedules)
-    tr = traces.record_ticks(env, k, s, n_ticks)
+    tr = traces.tick_trace(envs.record(env, k, n_ticks, traces.RECORD_FIELDS, attacks=s))
     r, fresh = traces.residual_trace(mcfg, tr, env.config.tick_dt)
     m = min(batch, n - i)
     out.append(jax.device_get((r[:m], fresh[:m], tr.time[:m], tr.valid[:m])))
@@ -138,7 +140,6 @@ def record_residuals(env, cfg, keys, schedules: attacks_lib.AttackSchedule, n_ti
 @jax.jit
 def _first_alarm(scale, h, used, k, cap, r, fresh, time, onset):
   """CUSUM replay (detector.cusum_step) over [N, T, C] residuals; first tick at/after onset [N] with a score > 1."""
-  from specguard_jax.detection import detector as det   # noqa: PLC0415
   cusum_cfg = types.SimpleNamespace(scale=scale, h=h, k=k, cap=cap)   # cusum_step only reads these four
 
   def one(rm, fm, tm, on):

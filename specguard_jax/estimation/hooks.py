@@ -1,4 +1,4 @@
-"""In-loop estimators of the prior-work baselines, called by the env's autopilot tick (envs/base.py `_tick`).
+"""In-tick estimators of the prior-work baselines, called by the env's autopilot tick (envs/base.py `_tick`).
 
 EnvConfig.recovery_estimator picks one ('software_sensors': SSR, 'dae': UnRocker); the env builds it once with
 `make(env, name, model_path)` and calls, every tick (pure JAX, jittable, vmappable):
@@ -10,27 +10,15 @@ Both see sim['det'] (the detector's alarm and diagnosis mask of the PREVIOUS tic
 
 from __future__ import annotations
 
-
-class Estimator:
-  """Identity hooks; subclasses override what they change."""
-
-  def init(self, ekf, readings):
-    raise NotImplementedError
-
-  def pre_ekf(self, sim, readings):
-    return sim, readings
-
-  def post_ekf(self, sim, est, readings):
-    del readings
-    return sim, est
+from specguard_jax.estimation import dae
+from specguard_jax.estimation import software_sensors
+from specguard_jax.estimation.estimator import Estimator
 
 
 def make(env, name: str, model_path: str = "") -> Estimator:
   """The estimator `name` for `env` (an envs.base.RAVEnv being constructed); one-line ValueError on a bad model file."""
   if name == "software_sensors":
-    from specguard_jax.baselines import ssr
-    return ssr.SoftwareSensors.create(env, model_path)
+    return software_sensors.SoftwareSensors.create(env, model_path)
   if name == "dae":
-    from specguard_jax.baselines import unrocker
-    return unrocker.DAEEstimator.create(env, model_path)
+    return dae.DAEEstimator.create(env, model_path)
   raise ValueError(f"unknown recovery estimator {name!r}; choose software_sensors or dae")
