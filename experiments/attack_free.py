@@ -2,7 +2,7 @@
 (specguard_jax.evaluation: seed 10,000, mission j from fold_in(key, j), world uniform over --worlds): per-spec
 violations (the attack-free SVR the issue asks to be 0 %), completion, RSR, crashes, collisions.
 
-  python bench/attack_free.py --missions 1000 [--vehicle drone] [--worlds train|all|a,b] [--detector residual]
+  python experiments/attack_free.py --missions 1000 [--vehicle drone] [--worlds train|all|a,b] [--detector residual]
                               [--json OUT]
 
 --worlds train (default) = the trainer's default worlds (the held-out evaluation's); all = the 10 presets.

@@ -1,6 +1,6 @@
 """The "No protection" column: the autopilot alone under overt / stealthy attacks on each sensor.
 
-  python bench/no_protection.py --vehicle drone --missions 1000 [--seed 0] [--json OUT]
+  python experiments/no_protection.py --vehicle drone --missions 1000 [--seed 0] [--json OUT]
 
 For each attacked sensor (Table 3) and profile, `--missions` generated missions spread over the 10 worlds fly with
 one random attack each (paper Table 3 bias ranges, onset 15-50 % into the mission, 15-40 s long). Reports the share

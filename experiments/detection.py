@@ -2,8 +2,8 @@
 attack profile on missions flown through the real env ticks (sensors -> attack -> EKF -> navigator -> autopilot ->
 MJX).
 
-  JAX_PLATFORMS=cpu python bench/detection.py --missions 4          # CPU, small
-  python bench/detection.py --missions 256 --seconds 90             # GPU
+  JAX_PLATFORMS=cpu python experiments/detection.py --missions 4          # CPU, small
+  python experiments/detection.py --missions 256 --seconds 90             # GPU
 
 Table columns: n missions; TPR = alarm raised while the attack is on (and none before it); FPR = missions with an
 alarm before the onset (the attack-free row: anywhere); delay = s from onset to the first alarm (median, p90);
@@ -11,7 +11,7 @@ diag = diagnosis on the first alarm (after the diagnosis window) names the attac
 the confusion table below it counts, per row, the sensor blamed on those missions (SENSOR_NAMES columns).
 Attack magnitudes are drawn from the paper's Table 3 ranges (specguard_jax.attacks.BIAS_RANGES), random direction.
 
-  JAX_PLATFORMS=cpu python bench/detection.py --stealthy 10         # designed stealthy ramps (attacks.stealthy)
+  JAX_PLATFORMS=cpu python experiments/detection.py --stealthy 10         # designed stealthy ramps (attacks.stealthy)
 
 --stealthy S: per sensor, the fastest ramp `attacks.design_stealthy` finds to stay hidden S s from the calibrated
 detector (design missions), then its hidden time and that of a 4x faster ramp on held-out missions (those whose

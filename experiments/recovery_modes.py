@@ -1,7 +1,7 @@
 """Recovery without a learned policy: the autopilot flying on reconstructed states (DeLorean-style RC with a zero
 residual) under every attack setting, per detector; the baseline a SpecGuard policy must beat.
 
-  python bench/recovery_modes.py --vehicle drone --missions 500 --detectors residual oracle [--json OUT]
+  python experiments/recovery_modes.py --vehicle drone --missions 500 --detectors residual oracle [--json OUT]
 Prints one table row per (detector, setting): SVR (any spec violated), critical, RSR (completed), crash, collision,
 detected; 'none' = the autopilot alone (no detector, no reconstruction).
 """

@@ -10,8 +10,8 @@ attack window. Dynamics model and DAE are trained on separate missions (with the
 Attacks: overt, Table 3 magnitudes (GPS 1-50 m, gyro 0.5-9.47 rad/s, random direction), onset 10-14 s.
 MSE: mean over attacked ticks and the 3 components; position in m^2, attitude (roll, pitch, yaw; wrapped) in deg^2.
 
-  python bench/state_estimation.py --missions 8            # CPU, small
-  python bench/state_estimation.py --missions 1024 --fit-missions 256   # GPU
+  python experiments/state_estimation.py --missions 8            # CPU, small
+  python experiments/state_estimation.py --missions 1024 --fit-missions 256   # GPU
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Build (train/fit) the prior-work baselines at a budget into a cache dir and time each step; prints one JSON object.
 
-  python bench/build_baselines.py --budget full --out runs/default/eval/baselines          # GPU, before evaluate.py
-  JAX_PLATFORMS=cpu python bench/build_baselines.py --budget ci --out /tmp/bl --only ssr,unrocker,pid_piper
+  python experiments/build_baselines.py --budget full --out runs/default/eval/baselines    # GPU, before evaluate.py
+  JAX_PLATFORMS=cpu python experiments/build_baselines.py --budget ci --out /tmp/bl --only ssr,unrocker,pid_piper
 
 The cache names are <name>_<vehicle>_<budget>_s<seed> (specguard_jax.baselines.common.cache_path): evaluate.py reuses
 them when --out here is <evaluate --out>/baselines and --seed is evaluate.py's --seed (default 10000 for both).
