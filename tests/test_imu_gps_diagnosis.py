@@ -33,7 +33,7 @@ def flights():
   keys = jax.random.split(jax.random.PRNGKey(SEED), N_KEYS)[np.array([j for _, j in ROWS])]
   sensor = jnp.asarray([attacks.SENSOR_NAMES.index(s) for s, _ in ROWS])
 
-  def one(key, si):   # bench/gps_xcheck.py's draw for a stealthy attack on sensor si
+  def one(key, si):   # the former bench/gps_xcheck.py's draw for a stealthy attack on sensor si
     return rollout.draw_paired_episode(env, key, (("gyro", "stealthy"), ("gps", "stealthy")),
                                        jnp.where(si == GYRO, 0, 1))
 

@@ -1,6 +1,7 @@
 """Rover gyroscope vs accelerometer diagnosis and the accelerometer-replaced reconstruction, closed loop in the env
 (RC + residual detector + reconstruction, zero override = the autopilot driving on the reconstruction; issue #5):
-missions drawn exactly as bench/gps_xcheck.py --vehicle rover --sensors gyro,accel --missions 32 --seed 7 draws them.
+missions drawn exactly as the former bench/gps_xcheck.py (git history) drew them with --vehicle rover --sensors
+gyro,accel --missions 32 --seed 7.
 
 * A stealthy gyro x/y ramp tilts the rover's EKF attitude: gravity leaks into its horizontal prediction and the GPS
   and odometry velocity innovations move together, the aiding pattern of an accelerometer bias. It was blamed on the
@@ -23,7 +24,7 @@ from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 32
-WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # bench/gps_xcheck.py
+WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # the former gps_xcheck
 # (sensor, profile, bench mission index)
 ROWS = (("gyro", "stealthy", 5), ("gyro", "stealthy", 1), ("accel", "overt", 17))
 SECONDS = 32.0
@@ -38,7 +39,7 @@ def drives():
   keys = jax.random.split(jax.random.PRNGKey(SEED), N_KEYS)[np.array([j for _, _, j in ROWS])]
   sid = jnp.asarray([_SETTINGS.index((s, p)) for s, p, _ in ROWS])
 
-  def one(key, si):   # bench/gps_xcheck.py's mission / attack / world draw
+  def one(key, si):   # the former bench/gps_xcheck.py's mission / attack / world draw
     return rollout.draw_paired_episode(env, key, _SETTINGS, si)
 
   @jax.jit

@@ -1,6 +1,7 @@
 """Rover gyroscope recovery, closed loop in the env (RC + residual detector + reconstruction, zero override = the
-autopilot driving on the reconstruction; issue #5): missions drawn exactly as bench/gps_xcheck.py --vehicle rover
---sensors gyro,accel --missions 32 --seed 7 draws them, picked from those whose reconstruction read all zeros.
+autopilot driving on the reconstruction; issue #5): missions drawn exactly as the former bench/gps_xcheck.py (git
+history) drew them with --vehicle rover --sensors gyro,accel --missions 32 --seed 7, picked from those whose
+reconstruction read all zeros.
 A gyro x/y bias (not an IMU-model channel on the rover) gave the checkpoint a few rad/s of roll rate; the shadow's
 replay through the rover's fitted angular model (no roll / pitch dynamics) blew up to NaN within 5 ticks of the
 alarm, and the shadow state read zeros for the whole alarm (100-200 m reconstruction error, the rover lost; the
@@ -17,7 +18,7 @@ from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 32
-WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # bench/gps_xcheck.py
+WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # the former gps_xcheck
 # (profile, bench mission index): gyro overt #14 / #1 (blamed on the gyro from the first tick), gyro stealthy #5
 # (accel for one tick, then the gyro); before: rec err 179 / 200 / 164 m
 ROWS = (("overt", 14), ("overt", 1), ("stealthy", 5))
@@ -32,7 +33,7 @@ def drives():
   keys = jax.random.split(jax.random.PRNGKey(SEED), N_KEYS)[np.array([j for _, j in ROWS])]
   overt = jnp.asarray([p == "overt" for p, _ in ROWS])
 
-  def one(key, ov):   # bench/gps_xcheck.py's mission / attack / world draw for a gyro attack
+  def one(key, ov):   # the former bench/gps_xcheck.py's mission / attack / world draw for a gyro attack
     return rollout.draw_paired_episode(env, key, (("gyro", "overt"), ("gyro", "stealthy")),
                                        jnp.where(ov, 0, 1))
 
