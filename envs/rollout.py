@@ -24,7 +24,7 @@ EPISODE_FLAGS = ("complete", "collision", "crash", "fence_breach", "stall", "nan
 
 
 def draw_paired_episode(env, key, settings, index):
-  """Reset one env for a paired closed-loop experiment (bench/gps_xcheck.py, bench/*_trace.py, the recovery tests).
+  """Reset one env for a paired closed-loop experiment (the recovery and diagnosis tests).
 
   Mission, attack and world are drawn from `key` the same way whatever the setting, so episodes with one key share
   their plan, world and noise and differ only in the attack. settings: static tuple of (sensor, profile) pairs or None

@@ -1,6 +1,6 @@
 """Sensor diagnosis of stealthy gyro and quick GPS ramps, closed loop in the env (RC + residual detector +
 reconstruction, zero override = the autopilot flying on the reconstruction; issue #5): missions drawn exactly as
-bench/gps_xcheck.py draws them (seed 7, its world set), picked from those an earlier diagnosis got wrong:
+the former bench/gps_xcheck.py drew them (seed 7, its world set), picked from those an earlier diagnosis got wrong:
   * stealthy gyro ramps (roll/pitch, the magnetometer quiet) that were blamed on the ACCELEROMETER for the whole alarm
     (the wrong sensor replaced while the attitude drifted: all three crashed) must be blamed on the gyro once the
     diagnosis window is over;
@@ -18,7 +18,7 @@ from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 64
-WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # bench/gps_xcheck.py
+WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # the former bench/gps_xcheck.py
 # (sensor, bench mission index): the earlier diagnosis blamed accel for the whole alarm (gyro) / accel first (gps)
 ROWS = (("gyro", 44), ("gyro", 61), ("gyro", 36), ("gps", 18), ("gps", 31))
 SECONDS = 30.0

@@ -172,7 +172,7 @@ class _MLP(nn.Module):
     return nn.Dense(self.n_out)(x)
 
 def budget_summary(name: str) -> dict:
-  """The sizes of budget `name` (bench/build_baselines.py reports them)."""
+  """The sizes of budget `name` (experiments/build_baselines.py reports them)."""
   return dataclasses.asdict(budget(name))
 
 

@@ -12,7 +12,7 @@ Deployed like a SpecGuard-RC run without reconstruction: reactive mode, residual
 
   'ci'  : 8 envs, 2 x 128 env steps on the CPU (a smoke-sized policy: the compile is most of its minutes)
   'full': 16,384 envs x 32-step unroll, 40 M phase-2 env steps on one GPU (under a minute of training, plus
-          about as long again to compile); bench/build_baselines.py prints
+          about as long again to compile); experiments/build_baselines.py prints
           the return curve (metrics.jsonl) to check it plateaus
 """
 

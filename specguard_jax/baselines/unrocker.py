@@ -10,7 +10,7 @@ samples between updates), it is the DAE the paper's appendix compares with, and 
 controller directly, as in UnRocker.
 
 Training pairs: attack-free autopilot flights (common.flights), attacked offline with random Table 3 attacks on
-every sensor (overt and stealthy) and replayed through a fresh EKF (as bench/state_estimation.py); inputs x'_t of
+every sensor (overt and stealthy) and replayed through a fresh EKF (as experiments/state_estimation.py); inputs x'_t of
 that EKF, targets the true x'_t; attacked ticks plus 20 % of clean ones. All missions x attacks replay in one
 vmapped, jitted scan (`training_pairs`); the DAE trains on the first 4/5 of the missions and its held-out denoising
 error (against the attacked input's own error) is stored in the cache's meta.
