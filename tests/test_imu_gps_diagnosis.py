@@ -18,7 +18,7 @@ from envs import rollout
 from specguard_jax import attacks
 
 SEED, N_KEYS = 7, 64
-WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # the former bench/gps_xcheck.py
+WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")   # former bench/gps_xcheck.py
 # (sensor, bench mission index): the earlier diagnosis blamed accel for the whole alarm (gyro) / accel first (gps)
 ROWS = (("gyro", 44), ("gyro", 61), ("gyro", 36), ("gps", 18), ("gps", 31))
 SECONDS = 30.0
