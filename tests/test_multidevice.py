@@ -348,7 +348,7 @@ def test_lanes_ekf_kernel_steps_the_envs_per_device():
 
 # On a host with 2 GPUs: the three training programs that a shard_map had made XLA segfault at compile time there
 # (jax 0.11.2, BENCHMARKS.md session 14) compile and run: a plain run and a 2-member sweep without the kernel, and a
-# run with the fused EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
+# run with the lanes EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
 @pytest.mark.gpu
 def test_two_gpus_compile_and_train(tmp_path):
   import jax
