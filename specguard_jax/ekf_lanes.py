@@ -1,19 +1,14 @@
-"""The EKF tick as one Pallas Mosaic GPU kernel with one vehicle per GPU lane (NVIDIA Hopper or newer), and the
-choice between it and the XLA filter (`resolve_ekf_kernel`, `ekf_step`).
+"""The EKF tick as one Pallas Mosaic GPU kernel, one vehicle per GPU lane (NVIDIA Hopper or newer), and the choice
+between it and the XLA filter (`resolve_ekf_kernel`, `ekf_step`).
 
-`prep_tick` computes, for a batch of vehicles, what `ekf.ekf_step` computes in XLA before the injection and the
-records: the nominal state's prediction, H and the innovations (`prep_inputs`), then the covariance work
-(`tick_body`: the prediction of P, the gates, the sequential scalar fusion, the timeout resets and the clean-up), equal
-to float32 rounding (tests/test_ekf_lanes.py runs the kernel's body in plain JAX on the CPU against the XLA filter).
-Why: in XLA the vmapped tick is dozens of small kernels over [B, 15, 15] buffers; here one program owns 128 vehicles,
-one per thread of a warpgroup, every per-vehicle quantity is a [128] vector, the tick is straight-line code with P's
-symmetry and F's / H's sparsity resolved statically, and P stays in registers for the whole tick.
-Memory: P packed ([B, 121], `ekf.pack_p`; the env keeps it so with this kernel, `ekf_init(p_layout="packed")`),
-batch-major as the env holds it; each program copies its vehicles' rows into shared memory with one TMA copy, each
-lane reads its own entries at an odd stride (no bank conflicts), and P is written back in place. The other inputs
-come vehicle-minor ([51, B], `pack_prep`) and the outputs are written over them.
-Lowering: `plgpu.kernel` with Lane semantics (Triton and Mosaic GPU's Warpgroup semantics do not compile code this
-long in reasonable time).
+`prep_tick` computes for a batch what `ekf.ekf_step` computes in XLA before the injection and the records: the
+nominal state's prediction, H and the innovations (`prep_inputs`), then the covariance work (`tick_body`), equal to
+float32 rounding (tests/test_ekf_lanes.py checks the kernel's body, run in plain JAX on the CPU, against the XLA tick).
+Why: in XLA the vmapped tick is dozens of small kernels over [B, 15, 15] buffers; here each thread of a warpgroup owns
+one vehicle, the tick is straight-line code with P's symmetry and F's / H's sparsity resolved statically, and P stays
+in registers for the whole tick. P is packed ([B, 121], `ekf.pack_p`; the env keeps it so with this kernel), copied
+into shared memory with one TMA copy per 128 vehicles and written back in place; the other inputs come vehicle-minor
+([51, B], `pack_prep`). Lowered with Lane semantics (Triton and Warpgroup semantics do not compile code this long).
 """
 
 from __future__ import annotations
