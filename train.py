@@ -78,10 +78,9 @@ def parse_args(argv=None):
   ap.add_argument("--sequential-sweep", action="store_true",
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
-  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton", "xla"), default=None,
-                  help="the EKF's covariance work as one GPU kernel per tick: lanes (what the bare flag picks, and the "
-                       "default on an NVIDIA Hopper or newer GPU: per-lane Mosaic GPU), triton (any NVIDIA GPU; "
-                       "longer compiles) or xla (no kernel: XLA's fusions, the default elsewhere)")
+  ap.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"),
+                  help="the EKF tick: lanes (one Mosaic GPU kernel, NVIDIA Hopper or newer), xla, or auto (default: "
+                       "lanes where the GPU and jax support it, else xla)")
   ap.add_argument("--unroll-ticks", action="store_true", default=None,
                   help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps, "
                        "more compile per phase; for long runs")
@@ -128,7 +127,7 @@ def build_config(a):
             "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
             "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
             "num_devices": a.devices, "env_groups": a.env_groups,
-            "fused_ekf": False if a.fused_ekf == "xla" else a.fused_ekf, "unroll_ticks": a.unroll_ticks,
+            "ekf_kernel": a.ekf_kernel, "unroll_ticks": a.unroll_ticks,
             "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
   over.update({k: v for k, v in simple.items() if v is not None})
   if a.steps is not None:

@@ -2,11 +2,11 @@
 every step (the default; Brax's loop uses it) vs refreshed once per rollout (the trainer's form, refresh_pool amortised
 over the unroll).
 
-  python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--fused-ekf] [--phase2]
-  python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--fused-ekf]     # the env step vs raw MJX
+  python bench/autoreset_cost.py --vehicle drone --envs 16384 65536 [--unroll 32] [--ekf-kernel xla] [--phase2]
+  python bench/autoreset_cost.py --envs 65536 --step-only --raw-mjx [--ekf-kernel xla]     # the env step vs raw MJX
   python bench/autoreset_cost.py --envs 16384 --sparse-reset          # A/B: only the finished envs written
-  python bench/autoreset_cost.py --envs 65536 --trainer-only --ab-nan-fallback [--fused-ekf]   # A/B: the trainer's env
-  python bench/autoreset_cost.py --envs 65536 --step-only --ab-tick-cond [--fused-ekf]   # A/B: GPS schedule by lax.cond
+  python bench/autoreset_cost.py --envs 65536 --trainer-only --ab-nan-fallback   # A/B: the trainer's env
+  python bench/autoreset_cost.py --envs 65536 --step-only --ab-tick-cond   # A/B: GPS schedule by lax.cond
 
 Prints ms per env step (best of 3, each a jitted lax.scan of `--unroll` steps), phase-1 env (--phase2: the
 phase-2 env), zero action.
@@ -82,12 +82,13 @@ def main():
   p.add_argument("--vehicle", default="drone", choices=("drone", "rover"))
   p.add_argument("--envs", type=int, nargs="+", default=[16384, 65536])
   p.add_argument("--unroll", type=int, default=32)
-  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  p.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                 help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   p.add_argument("--phase2", action="store_true",
                  help="the phase-2 env (reactive control, residual detector, reconstruction and its shadow EKF)")
   p.add_argument("--shadow-xla", action="store_true",
-                 help="with --fused-ekf --phase2: the shadow EKF keeps the XLA form (the autopilot's uses the kernel)")
+                 help="with --phase2 and the lanes kernel: the shadow EKF keeps the XLA form (the autopilot's "
+                      "uses the kernel)")
   p.add_argument("--step-only", action="store_true", help="time Vmap(env).step only (no AutoReset variants)")
   p.add_argument("--sparse-reset", action="store_true",
                  help="also time the trainer's AutoReset step writing only the finished envs (sparse_autoreset) and "
@@ -113,18 +114,18 @@ def main():
   env_kw = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase2 else {}
   if a.unroll_ticks:
     env_kw["unroll_ticks"] = True
-  env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **env_kw)
+  env = envs.make(a.vehicle, ekf_kernel=a.ekf_kernel, **env_kw)
   from specguard_jax import ekf as ekf_lib
   from specguard_jax.ppo.iteration import trainer_env_options
   trainer = trainer_env_options(env_kw.get("detector", "none"))
-  env_nf = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **env_kw) if a.ab_nan_fallback else None
+  env_nf = envs.make(a.vehicle, ekf_kernel=a.ekf_kernel, **trainer, **env_kw) if a.ab_nan_fallback else None
   if a.shadow_xla:
-    env._fused_shadow = False
+    env._shadow_kernel = "xla"
     if env_nf is not None:
-      env_nf._fused_shadow = False
-  env_cond = with_cond_gps_schedule(envs.make(a.vehicle, fused_ekf=a.fused_ekf, **env_kw)) if a.ab_tick_cond else None
-  label = (f"phase {2 if a.phase2 else 1}, EKF {a.fused_ekf or 'XLA'}" + (", ticks unrolled" if a.unroll_ticks else "")
-           + (", shadow EKF XLA" if a.fused_ekf and a.phase2 and a.shadow_xla else ""))
+      env_nf._shadow_kernel = "xla"
+  env_cond = with_cond_gps_schedule(envs.make(a.vehicle, ekf_kernel=a.ekf_kernel, **env_kw)) if a.ab_tick_cond else None
+  label = (f"phase {2 if a.phase2 else 1}, EKF {env._ekf_kernel}" + (", ticks unrolled" if a.unroll_ticks else "")
+           + (", shadow EKF XLA" if env._ekf_kernel == "lanes" and a.phase2 and a.shadow_xla else ""))
   for n in a.envs:
     keys = jax.random.split(jax.random.PRNGKey(0), n)
     st = jax.jit(jax.vmap(env.reset))(keys)

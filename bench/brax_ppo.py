@@ -223,8 +223,8 @@ def main(argv=None):
   p.add_argument("--no-evals", action="store_true", help="no evals (final_reward NaN)")
   p.add_argument("--hidden", type=int, nargs="+", default=[256, 256, 256, 256])
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  p.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                 help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   p.add_argument("--verbose", action="store_true", help="one line per epoch on stderr")
   p.add_argument("--json", default=None)
   a = p.parse_args(argv)
@@ -232,14 +232,14 @@ def main(argv=None):
     p.error(f"--envs {a.envs} must be a multiple of --minibatches {a.minibatches}")
   import envs
   from specguard_jax.ppo.iteration import trainer_env_options
-  env = envs.make(a.vehicle, control_mode="override", override_frame="body", fused_ekf=a.fused_ekf,
+  env = envs.make(a.vehicle, control_mode="override", override_frame="body", ekf_kernel=a.ekf_kernel,
                   **trainer_env_options())   # the trainer's phase-1 env (iteration.make_env)
   log = (lambda s: print(s, file=sys.stderr, flush=True)) if a.verbose else None
   r = run_brax_ppo(env, num_envs=a.envs, num_timesteps=a.steps, unroll_length=a.unroll,
                    batch_size=a.envs // a.minibatches, num_minibatches=a.minibatches,
                    num_updates_per_batch=a.epochs, episode_length=a.episode_length, seed=a.seed,
                    hidden=a.hidden, num_evals=a.evals, run_evals=not a.no_evals, num_eval_envs=a.eval_envs, log=log)
-  r.update(vehicle=a.vehicle, fused_ekf=a.fused_ekf, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches,
+  r.update(vehicle=a.vehicle, ekf_kernel=a.ekf_kernel, envs=a.envs, unroll=a.unroll, minibatches=a.minibatches,
            sgd_epochs=a.epochs, hidden=list(a.hidden), backend=jax.default_backend(), trainer="brax.training.agents.ppo")
   print(f"brax-ppo {a.vehicle} {jax.default_backend()}: {a.envs} envs, unroll {a.unroll}, {a.minibatches} minibatches"
         f" x {a.epochs} epochs: {r['env_steps']} env steps, {r['sps']:.0f} env steps/s (updates included, compile"

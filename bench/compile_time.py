@@ -2,7 +2,7 @@
 --trainer-parts, where a training phase's compile goes.
 
   JAX_PLATFORMS=cpu python bench/compile_time.py [--envs 64] [--steps 20]
-  python bench/compile_time.py --trainer-parts [--phase 1] [--envs 16384] [--vehicles drone] [--fused-ekf]
+  python bench/compile_time.py --trainer-parts [--phase 1] [--envs 16384] [--vehicles drone] [--ekf-kernel xla]
 
 --trainer-parts compiles (lower + compile, abstract inputs, nothing run) the phase's whole training call
 (`Phase.run`: `iters_per_call` iterations) and then, each alone, the parts it is made of: the rollout (the
@@ -25,12 +25,12 @@ def main():
   p.add_argument("--vehicles", nargs="+", default=["drone", "rover"])
   p.add_argument("--trainer-parts", action="store_true", help="compile times of a training phase and its parts")
   p.add_argument("--phase", type=int, default=1, choices=(1, 2))
-  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  p.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                 help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   a = p.parse_args()
   if a.trainer_parts:
     for v in a.vehicles:
-      trainer_parts(v, a.envs, a.phase, a.fused_ekf)
+      trainer_parts(v, a.envs, a.phase, a.ekf_kernel)
     return
   import envs
   print(f"backend {jax.default_backend()}, {a.envs} envs")
@@ -64,14 +64,14 @@ def _compile_s(fn, *args) -> float:
   return time.perf_counter() - t
 
 
-def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> None:
+def trainer_parts(vehicle: str, num_envs: int, number: int, ekf_kernel: str) -> None:
   """Prints the compile seconds of one training phase's call and of its parts (see the module docstring)."""
   from specguard_jax.ppo import attacker as attacker_lib
   from specguard_jax.ppo import config as config_lib
   from specguard_jax.ppo import distributed, losses
   from specguard_jax.ppo import iteration as it
 
-  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, fused_ekf=fused_ekf, phase1_steps=10**7,
+  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, ekf_kernel=ekf_kernel, phase1_steps=10**7,
                                phase2_steps=10**7, num_devices=1).validate()
   t = time.perf_counter()
   phase = it.make_phase(cfg, number, distributed.make_mesh(1))
@@ -96,7 +96,7 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> 
   batch.update({k: jax.ShapeDtypeStruct((T, num_envs), jnp.float32)
                 for k in ("logp", "mask", "value", "adv", "target")})
   rows["SG's PPO update"] = _compile_s(lambda st, b, k: losses.update(phase.sg, st, b, k), sg, batch, key)
-  print(f"{jax.devices()[0].device_kind}, {vehicle} phase {number}, {num_envs} envs, fused EKF {fused_ekf}: "
+  print(f"{jax.devices()[0].device_kind}, {vehicle} phase {number}, {num_envs} envs, EKF kernel {ekf_kernel}: "
         f"build + trace setup {t_build:.1f} s; compile seconds:", flush=True)
   for k, v in rows.items():
     print(f"  {k:40s} {v:7.1f}", flush=True)

@@ -42,6 +42,7 @@ def main():
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
   from specguard_jax import ekf as ekf_lib
+  from specguard_jax import ekf_lanes
   from specguard_jax import sensors as sensors_lib
   from envs import worlds
   phase2 = {} if a.plain else dict(control_mode="reactive", detector="residual", reconstruction=True)
@@ -65,11 +66,11 @@ def main():
   add("mjx.step (shared model)", lambda d: V(lambda d: mjx.step(env.mjx_model, d))(d), data, k)
   add("sensors.sense", lambda c: V(lambda s, t, kk: sensors_lib.sense(env.sensor_cfg, s, t, kk, dt)[0])(
       c, sim["truth"], keys), sim["sensors"], k)
-  for fused in (False, True) if jax.default_backend() == "gpu" else (False,):
-    add(f"ekf_step ({'fused kernel' if fused else 'XLA'})", lambda e: V(lambda e, r: ekf_lib.ekf_step(
-        env.ekf_cfg, e, r, dt, fused=fused))(e, sim["readings"]), sim["ekf"], k)
-  add("ekf_step (XLA, GPS rows stale)", lambda e: V(lambda e, r: ekf_lib.ekf_step(
-      env.ekf_cfg, e, r, dt, stale=("gps",), fused=False))(e, sim["readings"]), sim["ekf"], k)
+  for kernel in ("xla", "lanes") if ekf_lanes.resolve_ekf_kernel("auto") == "lanes" else ("xla",):
+    add(f"ekf_step ({kernel})", lambda e: V(lambda e, r: ekf_lanes.ekf_step(
+        env.ekf_cfg, e, r, dt, kernel=kernel))(e, sim["readings"]), sim["ekf"], k)
+  add("ekf_step (xla, GPS rows stale)", lambda e: V(lambda e, r: ekf_lib.ekf_step(
+      env.ekf_cfg, e, r, dt, stale=("gps",)))(e, sim["readings"]), sim["ekf"], k)
 
   if not a.plain:
     from specguard_jax import detection as detection_lib

@@ -43,8 +43,8 @@ def time_here(args) -> None:
   from specguard_jax.ppo.iteration import trainer_env_options
 
   kw = {} if args.defaults else trainer_env_options("none")
-  if args.fused_ekf is not None:
-    kw["fused_ekf"] = False if args.fused_ekf == "xla" else args.fused_ekf
+  if args.ekf_kernel is not None:
+    kw["ekf_kernel"] = args.ekf_kernel
   env = envs.make(args.vehicle, **kw)
   n = args.envs
   state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(args.seed), n))
@@ -71,8 +71,8 @@ def main() -> None:
   p.add_argument("--envs", type=int, default=65536)
   p.add_argument("--steps", type=int, default=32, help="env steps per timed call")
   p.add_argument("--calls", type=int, default=5, help="timed calls after the compile call (best one kept)")
-  p.add_argument("--fused-ekf", choices=("lanes", "triton", "xla"), default=None,
-                 help="EnvConfig.fused_ekf, xla: False (default: EnvConfig's default)")
+  p.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default=None,
+                 help="EnvConfig.ekf_kernel (default: EnvConfig's default)")
   p.add_argument("--defaults", action="store_true", help="EnvConfig's defaults instead of the trainer's env")
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--timeout", type=float, default=300.0, help="seconds per tree")

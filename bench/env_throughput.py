@@ -1,14 +1,14 @@
 """Env throughput: full env step (sensors, EKF, navigator, autopilot, world queries, MJX) vs raw MJX physics.
 
   python bench/env_throughput.py [--vehicles drone rover] [--envs 4096 65536 262144] [--steps 50] [--json OUT]
-      [--trainer-env] [--fused-ekf]
+      [--trainer-env] [--ekf-kernel auto|xla|lanes]
 
 For each vehicle and batch size: env steps/s (one env step = ticks_per_step autopilot ticks = 0.1 s of flight),
 control ticks/s, raw `mjx.step` steps/s of the same MJCF model at the same batch (ctrl/forces held constant), and
 the cost ratio raw_mjx_steps_per_s / env_ticks_per_s (1.0 = the env costs no more than its physics). Auto-reset
 (new mission + world per finished episode) is included, as in training. Timing excludes compilation (reported).
 --trainer-env: the env as the trainer steps it (ppo/iteration.py: no NaN fallback, the reset pool refreshed once per
-rollout of --steps steps instead of inside every step); --fused-ekf: the EKF's covariance work as one GPU kernel.
+rollout of --steps steps instead of inside every step); --ekf-kernel: the EKF tick's kernel (EnvConfig.ekf_kernel).
 """
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ def _time(fn, *args, repeats=3):
 
 
 def bench_env(vehicle: str, n_envs: int, steps: int, autoreset: bool = True, trainer_env: bool = False,
-              fused_ekf: bool = False) -> dict:
+              ekf_kernel: str = "auto") -> dict:
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
 
   from specguard_jax.ppo.iteration import trainer_env_options
-  env = envs.make(vehicle, fused_ekf=fused_ekf, **(trainer_env_options() if trainer_env else {}))
+  env = envs.make(vehicle, ekf_kernel=ekf_kernel, **(trainer_env_options() if trainer_env else {}))
   benv = AutoReset(VmapWrapper(env), refresh_in_step=not trainer_env) if autoreset else VmapWrapper(env)
   keys = jax.random.split(jax.random.PRNGKey(0), n_envs)
   t0 = time.perf_counter()
@@ -99,8 +99,8 @@ def main():
   p.add_argument("--no-autoreset", action="store_true", help="time the bare vmapped env (episodes may end)")
   p.add_argument("--trainer-env", action="store_true",
                  help="no NaN fallback, the reset pool refreshed once per --steps rollout (as ppo/iteration.py)")
-  p.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                 help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  p.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                 help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   args = p.parse_args()
   dev = jax.devices()[0]
   print(f"device: {dev.device_kind} ({jax.default_backend()}), jax {jax.__version__}")
@@ -109,8 +109,8 @@ def main():
     for n in args.envs:
       r = {"vehicle": vehicle, "envs": n}
       r.update(bench_env(vehicle, n, args.steps, autoreset=not args.no_autoreset, trainer_env=args.trainer_env,
-                         fused_ekf=args.fused_ekf))
-      r.update(autoreset=not args.no_autoreset, trainer_env=args.trainer_env, fused_ekf=args.fused_ekf)
+                         ekf_kernel=args.ekf_kernel))
+      r.update(autoreset=not args.no_autoreset, trainer_env=args.trainer_env, ekf_kernel=args.ekf_kernel)
       r.update(bench_mjx(vehicle, n, args.steps * r["ticks_per_step"]))
       r["cost_ratio"] = r["mjx_steps_per_s"] / r["ticks_per_s"]
       rows.append(r)

@@ -1,8 +1,8 @@
 """Where the GPU time of one training call (or of one vmapped EKF tick) goes, from a jax.profiler trace.
 
-  python bench/gpu_profile.py --envs 16384 --phase 1 [--fused-ekf] [--matmul-precision bf16]   # one training call, by stage
-  python bench/gpu_profile.py --ekf --envs 65536 [--fused-ekf]              # one vmapped ekf_step, by kernel
-  python bench/gpu_profile.py --env-step --envs 65536 [--fused-ekf] [--phase 2]   # vmapped env steps, by stage
+  python bench/gpu_profile.py --envs 16384 --phase 1 [--ekf-kernel xla] [--matmul-precision bf16]   # one training call, by stage
+  python bench/gpu_profile.py --ekf --envs 65536 [--ekf-kernel xla]         # one vmapped ekf_step, by kernel
+  python bench/gpu_profile.py --env-step --envs 65536 [--ekf-kernel xla] [--phase 2]   # vmapped env steps, by stage
   python bench/gpu_profile.py --env-step --raw-mjx --envs 65536             # the same steps' raw MJX physics
   python bench/gpu_profile.py --envs 16384 --iters-per-call 5 --keep-command-buffers --gaps   # where the GPU idles
 
@@ -214,8 +214,8 @@ def main(argv=None):
   ap.add_argument("--phase", type=int, default=1, choices=(1, 2))
   ap.add_argument("--unroll", type=int, default=32)
   ap.add_argument("--iters-per-call", type=int, default=1)
-  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                  help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  ap.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                  help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   ap.add_argument("--matmul-precision", default="default", choices=("default", "bf16"),
                   help="the agents' network matmuls (train.py's flag; training call only)")
   ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
@@ -245,13 +245,14 @@ def main(argv=None):
   dev = jax.devices()[0].device_kind
   if a.ekf:
     import envs
-    from specguard_jax import ekf as ekf_lib
-    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf)   # with the kernel, P in its padded layout as in the env
+    from specguard_jax import ekf_lanes
+    env = envs.make(a.vehicle, ekf_kernel=a.ekf_kernel)   # with the kernel, P in its packed layout as in the env
     keys = jax.random.split(jax.random.PRNGKey(0), a.envs)
     sim = jax.jit(jax.vmap(env.reset))(keys).info["sim"]
-    fn = jax.jit(jax.vmap(lambda e, r: ekf_lib.ekf_step(env.ekf_cfg, e, r, env.config.tick_dt, fused=a.fused_ekf)))
+    fn = jax.jit(jax.vmap(lambda e, r: ekf_lanes.ekf_step(env.ekf_cfg, e, r, env.config.tick_dt,
+                                                          kernel=env._ekf_kernel)))
     args = (sim["ekf"], sim["readings"])
-    label = (f"one vmapped ekf_step ({'fused kernel' if a.fused_ekf else 'XLA'}), {a.vehicle}, {a.envs} envs, "
+    label = (f"one vmapped ekf_step ({env._ekf_kernel}), {a.vehicle}, {a.envs} envs, "
              f"{dev}")
     res = profile(fn.lower(*args).compile(), args, label, a.top, runs=5, show=a.show)
   elif a.env_step:
@@ -261,7 +262,7 @@ def main(argv=None):
     phase2 = dict(control_mode="reactive", detector="residual", reconstruction=True) if a.phase == 2 else {}
     from specguard_jax.ppo.iteration import trainer_env_options
     trainer = trainer_env_options(phase2.get("detector", "none")) if a.no_nan_fallback else {}
-    env = envs.make(a.vehicle, fused_ekf=a.fused_ekf, **trainer, **phase2)
+    env = envs.make(a.vehicle, ekf_kernel=a.ekf_kernel, **trainer, **phase2)
     st = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), a.envs))
     act = jnp.zeros((a.envs, env.action_size))
     if a.raw_mjx:
@@ -273,7 +274,7 @@ def main(argv=None):
       what = f"raw MJX ({ticks} x mjx.step per env step)"
     else:
       one = lambda s: jax.vmap(env.step)(s, act)   # noqa: E731
-      args, what = (st,), (f"Vmap(env).step, phase {a.phase}, fused_ekf={a.fused_ekf}, "
+      args, what = (st,), (f"Vmap(env).step, phase {a.phase}, EKF {env._ekf_kernel}, "
                            f"{'the trainer env' if a.no_nan_fallback else 'nan_fallback=True'}")
     fn = jax.jit(lambda c: jax.lax.scan(lambda c, _: (one(c), None), c, None, length=a.steps)[0])
     label = f"{a.steps} env steps per call, {what}, {a.vehicle}, {a.envs} envs, {dev}"
@@ -283,11 +284,12 @@ def main(argv=None):
         f.write(compiled.as_text())
     res = profile(compiled, args, label, a.top, runs=2, show=a.show, gaps=a.gaps)
   else:
+    from specguard_jax import ekf_lanes
     from specguard_jax.ppo import attacker, config, distributed, iteration, losses, runner
     base = runner.default_sizes("gpu")
     cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
                              iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
-                             phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1,
+                             phase2_steps=base["phase2_steps"], ekf_kernel=a.ekf_kernel, num_devices=1,
                              matmul_precision=a.matmul_precision, network_dtype=a.network_dtype).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
@@ -302,7 +304,7 @@ def main(argv=None):
       with open(a.hlo_out, "w") as f:
         f.write(compiled.as_text())
     label = (f"one training call, phase {a.phase}, {a.vehicle}, {a.envs} envs x {a.unroll} steps x "
-             f"{a.iters_per_call} iteration(s), fused_ekf={a.fused_ekf}, {dev}")
+             f"{a.iters_per_call} iteration(s), EKF {ekf_lanes.resolve_ekf_kernel(cfg.ekf_kernel)}, {dev}")
     res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show, gaps=a.gaps)
   if a.json:
     json.dump(dict(res, device=dev, args=vars(a), date=time.strftime("%F")), open(a.json, "w"), indent=1)

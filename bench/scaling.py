@@ -3,7 +3,7 @@ quality check, a profiler trace and a per-component breakdown of one training it
 
   python bench/scaling.py --vehicle drone --envs 4096 65536 262144 --devices 1 --out /tmp/scal    # one GPU
   python bench/scaling.py --envs 16384 65536 --per-device --devices 1 2 --out /tmp/scal             # 2 GPUs
-  python bench/scaling.py --envs 16384 --per-device --devices 1 2 --fused-ekf --out /tmp/scal        # with the kernel
+  python bench/scaling.py --envs 16384 --per-device --devices 1 2 --ekf-kernel xla --out /tmp/scal   # XLA EKF
   python bench/scaling.py --max-envs 262144 --out /tmp/scal        # largest env count that fits (doubling to OOM)
   XLA_PYTHON_CLIENT_MEM_FRACTION=0.95 python bench/scaling.py --no-throughput --max-envs 524288 --out /tmp/scal
   python bench/scaling.py --quality 20000000 --devices 1 2 --out /tmp/scal   # same steps, 1 vs 2 devices
@@ -38,7 +38,7 @@ def _cfg(a, envs, devices, **kw):
   base = runner.default_sizes("gpu")
   c = config.TrainConfig(vehicle=a.vehicle, num_envs=envs, unroll_length=a.unroll, iters_per_call=a.iters_per_call,
                          phase1_steps=base["phase1_steps"], phase2_steps=base["phase2_steps"], num_devices=devices,
-                         seed=a.seed, env_groups=kw.pop("env_groups", 0), fused_ekf=a.fused_ekf,
+                         seed=a.seed, env_groups=kw.pop("env_groups", 0), ekf_kernel=a.ekf_kernel,
                          network_dtype=a.network_dtype, **kw)
   if a.smoke:
     tiny = config.PPOConfig(num_minibatches=2, update_epochs=1)
@@ -280,8 +280,8 @@ def main(argv=None):
   ap.add_argument("--iters-per-call", type=int, default=2)
   ap.add_argument("--calls", type=int, default=3, help="timed calls per measurement (after the compile call)")
   ap.add_argument("--seed", type=int, default=0)
-  ap.add_argument("--fused-ekf", nargs="?", const="lanes", choices=("lanes", "triton"), default=False,
-                  help="the EKF's covariance work as one GPU kernel per tick: lanes (bare flag) or triton")
+  ap.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"), default="auto",
+                  help="the EKF tick: lanes (one GPU kernel), xla, or auto (lanes where supported)")
   ap.add_argument("--network-dtype", default="bfloat16", choices=("float32", "bfloat16"),
                   help="the agents' networks' compute dtype in training (train.py's flag; default: its GPU "
                        "default)")

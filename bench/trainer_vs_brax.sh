@@ -2,7 +2,7 @@
 # Training throughput of train.py (phase 1 only) against Brax's own ppo.train on the same env and sizes: 16,384 envs x
 # 32-step unroll, 8 minibatches x 4 epochs, hidden 256 x 3 (BENCHMARKS.md, "Training vs Brax").
 # Usage on the GPU machine, from the repo root, with the wheels of ../shared/tools/gpu-wheels.sh installed:
-#   bash bench/trainer_vs_brax.sh OUT_DIR [flags for both trainers, e.g. --fused-ekf]
+#   bash bench/trainer_vs_brax.sh OUT_DIR [flags for both trainers, e.g. --ekf-kernel xla]
 # Env: STEPS (default 40000000); VARIANTS: ';'-separated extra train.py flags, one run each (default: one run with
 # none; e.g. VARIANTS=';--matmul-precision bf16'); BRAX=0 skips Brax. Prints each train.py run's env steps/s per
 # compiled call (from its metrics.jsonl; the first call carries the compile) and Brax's line.

@@ -34,6 +34,7 @@ from envs import worlds as worlds_lib
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import detection as detection_lib
 from specguard_jax import ekf as ekf_lib
+from specguard_jax import ekf_lanes
 from specguard_jax import math3d
 from specguard_jax import rewards as rewards_lib
 from specguard_jax import sensors as sensors_lib
@@ -81,47 +82,6 @@ class PhysicsState:
     return cls(**{f.name: getattr(data, f.name) for f in dataclasses.fields(cls)})
 
 
-EKF_KERNELS = ("triton", "lanes")   # EnvConfig.fused_ekf's kernels (besides False: XLA)
-
-
-def ekf_kernel_kind(fused_ekf) -> str:
-  """EnvConfig.fused_ekf as the kernel's name: "" (XLA), "triton" (also for True) or "lanes"; a clear error else."""
-  if fused_ekf is None or fused_ekf is False or fused_ekf == "":
-    return ""
-  if fused_ekf is True:
-    return "triton"
-  if fused_ekf in EKF_KERNELS:
-    return fused_ekf
-  raise ValueError(f"fused_ekf must be false, true or one of {', '.join(EKF_KERNELS)}; got {fused_ekf!r}")
-
-
-def _compute_capability() -> float | None:
-  """The default device's CUDA compute capability (None: not a GPU, or not reported)."""
-  if jax.default_backend() != "gpu":
-    return None
-  cc = getattr(jax.devices()[0], "compute_capability", None)
-  return None if cc is None else float(cc)
-
-
-def lanes_kernel_supported() -> bool:
-  """Whether the default device runs the "lanes" kernel: an NVIDIA GPU of compute capability 9.0 (Hopper) or newer."""
-  cc = _compute_capability()
-  return cc is not None and cc >= 9.0
-
-
-def check_ekf_kernel(fused_ekf) -> str:
-  """`ekf_kernel_kind`, and a clear error where the kernel cannot run: no GPU, or "lanes" (Mosaic GPU: TMA and
-  warpgroups) on an NVIDIA GPU older than Hopper (compute capability 9.0)."""
-  kind = ekf_kernel_kind(fused_ekf)
-  if kind and jax.default_backend() != "gpu":
-    raise ValueError(f"fused_ekf needs a GPU (the default backend is {jax.default_backend()})")
-  cc = _compute_capability() if kind == "lanes" else None
-  if cc is not None and cc < 9.0:
-    raise ValueError(f"fused_ekf='lanes' needs an NVIDIA Hopper GPU or newer (compute capability 9.0); "
-                     f"{jax.devices()[0].device_kind} is {cc}: use fused_ekf='triton' (--fused-ekf triton)")
-  return kind
-
-
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Static env configuration (hashable; changing it recompiles).
@@ -167,15 +127,12 @@ class EnvConfig:
   # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
-  # The EKFs' covariance work (the autopilot's and, with reconstruction, the shadow filter's) as one GPU kernel per
-  # tick for the whole batch (GPU only; a vmapped env's batch must be on one device: the trainer shard_maps the step,
-  # ppo/iteration.group_step), the same filters to float32 rounding (BENCHMARKS.md): False (XLA); "lanes" the
-  # per-lane Mosaic GPU kernel (specguard_jax/ekf_lanes.py, NVIDIA Hopper or newer, train.py's default there: the
-  # drone's tick 5x quicker than XLA, its env step 3.73x -> 1.91x raw MJX at 65,536 envs on an H200 (1.83x as the
-  # trainer configures the env, the rover's 1.99x; session 41), 3-8 s of compile
-  # per variant; P kept packed, ekf_init(p_layout="packed")); True or "triton" the Triton tile kernel (ekf_kernel.py,
-  # any NVIDIA GPU: ~1.5x per tick, ~28 s of compile per variant; P kept padded, ekf_init(p_layout="padded")).
-  fused_ekf: bool | str = False
+  # How the EKFs (the autopilot's and, with reconstruction, the shadow filter's) run their tick: "xla" the XLA filter;
+  # "lanes" one Mosaic GPU kernel per tick for the whole vmapped batch (specguard_jax/ekf_lanes.py; NVIDIA Hopper or
+  # newer; a vmapped env's batch must be on one device: the trainer shard_maps the step, ppo/iteration.group_step;
+  # P kept packed, ekf_init(p_layout="packed")), the same filter to float32 rounding and several times quicker;
+  # "auto" the kernel where the device and jax support it, else XLA (ekf_lanes.resolve_ekf_kernel).
+  ekf_kernel: str = "auto"
   # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
   # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every
   # finished env's whole state with a fresh one anyway; obs, reward, signals, STL monitor and episode record are
@@ -193,7 +150,7 @@ class EnvConfig:
   unroll_ticks: bool = False
 
   def validate(self):
-    check_ekf_kernel(self.fused_ekf)
+    ekf_lanes.resolve_ekf_kernel(self.ekf_kernel)
     for w in (self.world,) + tuple(self.worlds):
       if w not in worlds_lib.PRESETS:
         raise ValueError(f"unknown world {w!r}; choose one of {', '.join(worlds_lib.PRESETS)}")
@@ -272,9 +229,9 @@ class RAVEnv(Env):
     gps_period = int(round(1.0 / (config.tick_dt * self.sensor_cfg.gps_rate)))
     self._gps_period = (gps_period if gps_period > 1 and config.ticks_per_step % gps_period == 0
                         and jax.default_backend() != "cpu" else None)
-    self._fused_ekf = ekf_kernel_kind(config.fused_ekf)   # the autopilot EKF's covariance kernel (EnvConfig)
-    self._fused_shadow = self._fused_ekf    # ... and the reconstruction's shadow EKF's (bench/autoreset_cost.py
-                                            # --phase2 turns it off alone to measure its share)
+    self._ekf_kernel = ekf_lanes.resolve_ekf_kernel(config.ekf_kernel)   # the autopilot EKF's: "xla" or "lanes"
+    self._shadow_kernel = self._ekf_kernel    # ... and the reconstruction's shadow EKF's (bench/autoreset_cost.py
+                                              # --phase2 sets it apart to measure its share)
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
@@ -349,9 +306,8 @@ class RAVEnv(Env):
     sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
     k_sens2, k_run = jax.random.split(k_run)
     sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
-    # P in the layout of the EKF's covariance kernel ("interpret": the Triton kernel in tests)
-    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, p_layout={"triton": "padded", "interpret": "padded",
-                                                              "lanes": "packed"}.get(self._fused_ekf, "square"))
+    # P in the layout of the EKF's kernel
+    ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, p_layout="packed" if self._ekf_kernel == "lanes" else "square")
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,
@@ -539,7 +495,7 @@ class RAVEnv(Env):
       with jax.named_scope("reconstruction"):
         rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                        u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
-                                                       anchor, gps_due, fused=self._fused_shadow,
+                                                       anchor, gps_due, kernel=self._shadow_kernel,
                                                        records=cfg.ekf_records)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
@@ -560,9 +516,9 @@ class RAVEnv(Env):
   def _ekf_update(self, ekf, readings, gps_due):
     """The autopilot's EKF tick. gps_due False: no env can have a fresh GPS sample, and the GPS rows are left out of
     the fusion (ekf.on_gps_schedule). None: the full tick."""
-    return ekf_lib.on_gps_schedule(lambda stale: ekf_lib.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt,
-                                                                  stale=stale, fused=self._fused_ekf,
-                                                                  records=self.config.ekf_records), gps_due)
+    return ekf_lib.on_gps_schedule(lambda stale: ekf_lanes.ekf_step(self.ekf_cfg, ekf, readings, self.config.tick_dt,
+                                                                    stale=stale, kernel=self._ekf_kernel,
+                                                                    records=self.config.ekf_records), gps_due)
 
   def _attack(self, readings: SensorReadings, sim, attack) -> SensorReadings:
     """Sensor attacks enter here, between the sensors and the EKF: y_a(t) = y(t) + b(t) (specguard_jax.attacks)."""

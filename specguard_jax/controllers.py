@@ -125,14 +125,14 @@ def zero_policy(params, obs):
 
 def load_run_config(run_dir: str):
   """TrainConfig of a train.py run dir (config.json); NotAvailable when the run is missing or unreadable.
-  Its EKF kernel choice (fused_ekf, train.py's default on Hopper GPUs) is dropped: a training speed setting for the
-  same filter, which evaluation does not use, so that a GPU-trained run evaluates on any machine."""
+  Its EKF kernel choice (ekf_kernel, "lanes" on Hopper GPUs) is dropped: a training speed setting for the same
+  filter, which evaluation does not use, so that a GPU-trained run evaluates on any machine."""
   path = os.path.join(run_dir, "config.json")
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
     with open(path) as f:
-      return dataclasses.replace(config_lib.from_dict(json.load(f)), fused_ekf=False).validate()
+      return dataclasses.replace(config_lib.from_dict(json.load(f)), ekf_kernel="xla").validate()
   except (OSError, ValueError, TypeError) as e:
     raise NotAvailable(f"{path}: {' '.join(str(e).split())}") from None
 

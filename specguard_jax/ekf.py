@@ -127,10 +127,9 @@ class EKFState:
   """Filter state of one vehicle.
 
   pos[3], vel[3], quat[4], gyro_bias[3], accel_bias[3]: nominal state.  P: the error-state covariance in one of
-    `P_LAYOUTS` (`ekf_init(p_layout=...)`): "square" [15, 15]; "padded" [16, 16] with a zero last row and column
-    (the Triton kernel's layout); "packed" [121], its upper triangle in `TRI` order and a zero (the lanes kernel's
-    layout). A kernel's layout is kept between ticks so that P enters and leaves the kernel without a copy; every
-    function here accepts any of them (`as_square`, `p_entry`, `p_diag`).
+    `P_LAYOUTS` (`ekf_init(p_layout=...)`): "square" [15, 15] (the XLA filter's); "packed" [121], its upper
+    triangle in `TRI` order and a zero (the lanes kernel's, ekf_lanes.py: kept between ticks so that P enters and
+    leaves the kernel without a copy). Every function here accepts either (`as_square`, `p_entry`, `p_diag`).
   gps_pos_age, gps_vel_age, hgt_age: [] s since the last accepted horizontal GPS position / GPS velocity /
     height (GPS height or baro) fusion.
   innov: [11] last innovation (measurement - prediction) per channel (CHANNELS), held between samples.
@@ -189,7 +188,6 @@ def _normalize_quat(q):
 _VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
 _EYE = np.eye(N_ERR, dtype=np.float32)
 _VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
-N_PAD = 16   # size of the padded layout of P (ekf_init(p_layout="padded"))
 TRI = tuple((i, j) for i in range(N_ERR) for j in range(i, N_ERR))       # P's upper triangle, 120 entries
 TRI_INDEX = {ij: k for k, ij in enumerate(TRI)}
 
@@ -200,20 +198,11 @@ def tri_index(i: int, j: int) -> int:
 
 
 N_PACKED = len(TRI) + 1   # the packed layout: the triangle and a zero (an odd length: ekf_lanes reads it per lane)
-P_LAYOUTS = {"square": N_ERR, "padded": N_PAD, "packed": N_PACKED}     # layout -> P's last dimension
+P_LAYOUTS = {"square": N_ERR, "packed": N_PACKED}     # layout -> P's last dimension
 _TRI_ROW = np.array([i for i, _ in TRI] + [0])          # [121] row / column of each packed entry (the zero: 0, 0)
 _TRI_COL = np.array([j for _, j in TRI] + [0])
 _TRI_DIAG = np.array([i == j for i, j in TRI] + [False])
 _SQUARE_OF_PACKED = np.array([[tri_index(i, j) for j in range(N_ERR)] for i in range(N_ERR)])
-
-
-def _clamps(n: int):
-  """(var_min [n], var_max [n], eye [n, n]) for P of size n (15, or 16 padded: the padding row's bounds 0 and 1
-  keep its zero diagonal at zero)."""
-  if n == N_ERR:
-    return _VAR_MIN, _VAR_MAX, _EYE
-  pad = n - N_ERR
-  return (np.pad(_VAR_MIN, (0, pad)), np.pad(_VAR_MAX, (0, pad), constant_values=1.0), np.eye(n, dtype=np.float32))
 
 
 def p_layout(P) -> str:
@@ -230,16 +219,13 @@ def pack_p(P15):
 
 
 def as_square(P):
-  """P [..., 15, 15] from any layout."""
-  return P[..., _SQUARE_OF_PACKED] if p_layout(P) == "packed" else P[..., :N_ERR, :N_ERR]
+  """P [..., 15, 15] from either layout."""
+  return P[..., _SQUARE_OF_PACKED] if p_layout(P) == "packed" else P
 
 
 def in_layout(P15, layout: str):
   """P15 [..., 15, 15] in `layout`."""
-  if layout == "packed":
-    return pack_p(P15)
-  pad = P_LAYOUTS[layout] - N_ERR
-  return jnp.pad(P15, [(0, 0)] * (P15.ndim - 2) + [(0, pad), (0, pad)]) if pad else P15
+  return pack_p(P15) if layout == "packed" else P15
 
 
 def layout_like(P15, P_ref):
@@ -248,23 +234,22 @@ def layout_like(P15, P_ref):
 
 
 def p_entry(P, i: int, j: int):
-  """P[i, j] of one vehicle's P in any layout (static indices: a slice)."""
+  """P[i, j] of one vehicle's P in either layout (static indices: a slice)."""
   return P[tri_index(i, j)] if p_layout(P) == "packed" else P[i, j]
 
 
 def p_diag(P):
-  """[..., 15] P's diagonal, any layout."""
+  """[..., 15] P's diagonal, either layout."""
   if p_layout(P) == "packed":
     return P[..., np.flatnonzero(_TRI_DIAG)]
-  return jnp.diagonal(P, axis1=-2, axis2=-1)[..., :N_ERR] if P.ndim > 2 else _diag(P)[:N_ERR]
+  return jnp.diagonal(P, axis1=-2, axis2=-1) if P.ndim > 2 else _diag(P)
 
 
 def add_to_diag(P, d):
-  """P + diag(d), d [15] (one vehicle's P in any layout; elementwise)."""
+  """P + diag(d), d [15] (one vehicle's P in either layout; elementwise)."""
   if p_layout(P) == "packed":
     return P + jnp.where(_TRI_DIAG, jnp.pad(d, (0, 1))[_TRI_ROW], 0.0)
-  n = P.shape[-1]
-  return P + np.eye(n, dtype=np.float32) * jnp.pad(d, (0, n - N_ERR))[None, :]
+  return P + _EYE * d[None, :]
 
 
 def _diag(P):
@@ -284,12 +269,11 @@ def _condition(P, symmetrise: bool = True, diag=None):
     P = 0.5 * (P + P.T)
   P = jnp.where(jnp.isfinite(P), P, 0.0)
   d = _diag(P) if diag is None else diag
-  var_min, var_max, eye = _clamps(P.shape[-1])
   # upper clamp: scale row/column i by sqrt(max/var) (a congruence, so PSD is kept)
-  s = jnp.sqrt(jnp.minimum(1.0, var_max / jnp.maximum(d, 1e-30)))
+  s = jnp.sqrt(jnp.minimum(1.0, _VAR_MAX / jnp.maximum(d, 1e-30)))
   # lower clamp: adding a nonnegative diagonal keeps PSD
-  lift = jnp.maximum(var_min - d * (s * s), 0.0)
-  return P * (s[:, None] * s[None, :]) + eye * lift[None, :]
+  lift = jnp.maximum(_VAR_MIN - d * (s * s), 0.0)
+  return P * (s[:, None] * s[None, :]) + _EYE * lift[None, :]
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -299,8 +283,7 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings, p_layout: str = "square")
   """Initial state from one set of readings: horizontal position and velocity from GPS, height from the barometer,
   roll/pitch from the accelerometer's gravity direction, yaw from the magnetometer heading; zero biases.
   Use the readings of the first tick after `init_sensors` (every sensor fresh), with the vehicle at rest or nearly.
-  p_layout: P's layout (`P_LAYOUTS`): "square", or a kernel's (ekf_step(fused=...)): "padded" for the Triton
-  kernel, "packed" for the lanes kernel.
+  p_layout: P's layout (`P_LAYOUTS`): "square", or "packed" for the lanes kernel (ekf_lanes.py).
   """
   if p_layout not in P_LAYOUTS:
     raise ValueError(f"ekf_init: p_layout {p_layout!r} is not one of {tuple(P_LAYOUTS)}")
@@ -410,8 +393,8 @@ def _observe_err(cfg: EKFConfig, s: EKFState, dx):
 
 def _linearise(cfg: EKFConfig, s: EKFState):
   """Predicted observations [13] and their Jacobian H [13, 15] w.r.t. the error state, in closed form (the same as
-  jax.jacfwd of `_observe_err` at 0, tests/test_ekf.py; jacfwd pushed 15 tangents through the rotation products,
-  which on a GPU was the EKF's largest XLA kernel, ~96 us per tick at 65,536 vehicles).
+  jax.jacfwd of `_observe_err` at 0, tests/test_ekf.py; jacfwd pushes 15 tangents through the rotation products,
+  a large XLA kernel on a GPU).
 
   With body velocity vb = R' v: d vb / d vel = R', d vb / d theta = R' [v]x; the heading atan2(R10, R00) has
   d / d theta = (-R00 R20 / n, -R10 R20 / n, 1), n = R00^2 + R10^2; flow = vb[:2] / max(z, h_min)."""
@@ -511,8 +494,8 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple =
     us.append(pht)
     ues.append(pe)
     cs.append(c)
-  # P_13 = P_0 - sum_i c_i u_i u_i' as an explicit sum of outer products (one elementwise pass; a reduce over a stacked
-  # [13, 15, 15] product was 30 % of the EKF on an H100). u_i u_i' is exactly symmetric, so P stays symmetric.
+  # P_13 = P_0 - sum_i c_i u_i u_i' as an explicit sum of outer products (one elementwise pass, where a reduce over a
+  # stacked [13, 15, 15] product is a costly kernel of its own). u_i u_i' is exactly symmetric, so P stays symmetric.
   P = P0
   for u, c in zip(us, cs):
     P = P - c * (u[:, None] * u[None, :])
@@ -589,29 +572,24 @@ def _resets(accept, due):
   return due & ~_blocks_fused(accept)
 
 
-def _reset_and_condition(cfg: EKFConfig, P, accept, due, diag=None):
-  """P [n, n] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
-  (`_condition` without symmetrisation: P is exactly symmetric here). diag: [n] P's diagonal if already at hand (the
-  kernel's output): the same result, in one elementwise pass over P that reads no strided diagonal."""
-  n = P.shape[-1]
-  cleared, new_var = jnp.zeros(n, bool), jnp.zeros(n, P.dtype)   # the blocks are disjoint: one pass does them all
+def _reset_and_condition(cfg: EKFConfig, P, accept, due):
+  """P [15, 15] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
+  (`_condition` without symmetrisation: P is exactly symmetric here)."""
+  cleared, new_var = jnp.zeros(N_ERR, bool), jnp.zeros(N_ERR, P.dtype)   # the blocks are disjoint: one pass does all
   for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
-    block = np.isin(np.arange(n), cols)
+    block = np.isin(np.arange(N_ERR), cols)
     cleared = cleared | (block & do)
     new_var = jnp.where(block & do, var, new_var)
-  P = jnp.where(cleared[:, None] | cleared[None, :], 0.0, P) + _clamps(n)[2] * new_var[None, :]
-  if diag is not None:
-    d = jnp.where(cleared, new_var, diag)
-    diag = jnp.where(jnp.isfinite(d), d, 0.0)
-  return _condition(P, symmetrise=False, diag=diag)
+  P = jnp.where(cleared[:, None] | cleared[None, :], 0.0, P) + _EYE * new_var[None, :]
+  return _condition(P, symmetrise=False)
 
 
 def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
               unrolled: bool | None = None):
   """The tick's covariance work in XLA: prediction of P (`_predict_cov`), gates, sequential fusion (`_rows_*`), the
   timeout resets of the blocks that are due ([3] bool, order `_RESETS`) and the closing clean-up.
-  Returns (P in its layout, dx [15], test ratio [13], accept [13] bool). `ekf_kernel.cov_tick` is the same as one GPU
-  kernel for a batch."""
+  Returns (P in its layout, dx [15], test ratio [13], accept [13] bool). `ekf_lanes.tick_body` is the same filter
+  per GPU lane."""
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
   rows = _rows_unrolled if unrolled else _rows_rolled
@@ -619,108 +597,16 @@ def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale
   return layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
 
 
-def _cov_spec(cfg: EKFConfig, dt: float, stale: tuple):
-  """The static description of the tick's covariance work that `ekf_kernel.cov_tick` is traced for."""
-  from specguard_jax import ekf_kernel
-  noise, gate = _noise_and_gates(cfg)
-  dt = float(dt)
-  q = _process_noise(cfg, dt, np)
-  return ekf_kernel.CovSpec(
-    dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
-    gate=tuple(float(v) for v in gate),
-    used=tuple(_row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=_GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in _VAR_MIN), var_max=tuple(float(v) for v in _VAR_MAX), h_support=_H_SUPPORT)
-
-
-def _cov_tick_batched(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple, batched):
-  """`_cov_tick` for one vehicle whose vmap runs `batched(spec, P, A, B, H, innov, enable, due)` on the whole batch
-  (a GPU kernel; every argument batched, axis 0) and returns (P, dx, ratio, accept) batched. Unbatched: the XLA form."""
-  spec = _cov_spec(cfg, dt, stale)
-  R = jnp.asarray(spec.R, jnp.float32)
-  gate = jnp.asarray(spec.gate, jnp.float32)
-
-  @jax.custom_batching.custom_vmap
-  def tick(P, A, B, H, innov, enable, due):
-    return _cov_tick(cfg, P, A, B, dt, H, innov, R, gate, enable, due, stale, unrolled=True)
-
-  @tick.def_vmap
-  def _(axis_size, in_batched, *args):
-    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
-    return batched(spec, *args), (True, True, True, True)
-
-  return tick(P, A, B, H, innov, enable, due)
-
-
-def _cov_tick_fused(cfg: EKFConfig, P, A, B, dt: float, H, innov, enable, due, stale: tuple,
-                    interpret: bool = False):
-  """`_cov_tick` for one vehicle whose vmap runs `ekf_kernel.cov_tick` (one fused kernel for the whole batch)."""
-  from specguard_jax import ekf_kernel
-
-  def batched(spec, P, A, B, H, innov, enable, due):
-    ab = jnp.concatenate([A.reshape(-1, 9), B.reshape(-1, 9)], axis=1)
-    P, dx, ratio, accept, diag = ekf_kernel.cov_tick(spec, P, ab, H, innov, enable, interpret=interpret)
-    return jax.vmap(lambda *a: _reset_and_condition(cfg, *a))(P, accept, due, diag), dx, ratio, accept
-
-  return _cov_tick_batched(cfg, P, A, B, dt, H, innov, enable, due, stale, batched)
-
-
-@struct.dataclass
-class _Nominal:
-  """The nominal state's fields `_predict_nominal` and `_innovations` read (an EKFState's, without P and records)."""
-  pos: jnp.ndarray
-  vel: jnp.ndarray
-  quat: jnp.ndarray
-  gyro_bias: jnp.ndarray
-  accel_bias: jnp.ndarray
-
-
-def _tick_lanes_prep(cfg: EKFConfig, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due,
-                     dt: float, stale: tuple):
-  """One vehicle's tick but the injection and the records (the prediction, H, the innovations and the covariance
-  work) whose vmap runs `ekf_lanes.prep_tick` (one Mosaic GPU kernel for the batch, its inputs prepared per lane).
-  enable [13] bool: the flow rows before the predicted-height check. Unbatched: the XLA form. Returns (P, dx [15],
-  ratio [13], accept [13] bool, innov [13] before the gates, the predicted pos [3], vel [3], quat [4])."""
-  from specguard_jax import ekf_lanes
-  spec = _cov_spec(cfg, dt, stale)
-
-  @jax.custom_batching.custom_vmap
-  def tick(*args):
-    return _tick_prep_xla(cfg, dt, stale, *args)
-
-  @tick.def_vmap
-  def _(axis_size, in_batched, *args):
-    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
-    return (ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *args, flow_min_height=float(cfg.flow_min_height)),
-            (True,) * 8)
-
-  return tick(P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due)
-
-
-def _tick_prep_xla(cfg: EKFConfig, dt: float, stale: tuple, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z,
-                   enable, due):
-  """`_tick_lanes_prep` for one vehicle in XLA (the reference; arguments and results as its)."""
-  noise, gate = _noise_and_gates(cfg)
-  s, A, B = _predict_nominal(cfg, _Nominal(pos=pos, vel=vel, quat=quat, gyro_bias=gyro_bias, accel_bias=accel_bias),
-                             gyro, accel, dt)
-  rows = jnp.arange(N_ROWS)
-  enable = enable & jnp.where((rows == 8) | (rows == 9), s.pos[2] >= cfg.flow_min_height, True)
-  innov, H = _innovations(cfg, s, z)
-  P, dx, ratio, accept = _cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate), enable,
-                                   due, stale, unrolled=True)
-  return P, dx, ratio, accept, innov, s.pos, s.vel, s.quat
-
-
 def reset_block(P, idx, var, do):
-  """Where `do`: clears rows/columns `idx` of one vehicle's P (any layout) and sets their variance to var
+  """Where `do`: clears rows/columns `idx` of one vehicle's P (either layout) and sets their variance to var
   (elementwise: no scatter into P)."""
   if p_layout(P) == "packed":
     mask = np.isin(np.arange(N_ERR), idx)
     hit = mask[_TRI_ROW] | mask[_TRI_COL]
     return jnp.where(hit & do, 0.0, P) + jnp.where(_TRI_DIAG & hit & do, var, 0.0)
-  n = P.shape[-1]
-  mask = jnp.zeros(n, bool).at[jnp.asarray(idx)].set(True) & do
+  mask = jnp.zeros(N_ERR, bool).at[jnp.asarray(idx)].set(True) & do
   P = jnp.where(mask[:, None] | mask[None, :], 0.0, P)
-  return P + _clamps(n)[2] * jnp.where(mask, var, 0.0)[None, :]
+  return P + _EYE * jnp.where(mask, var, 0.0)[None, :]
 
 
 def _noise_and_gates(cfg: EKFConfig):
@@ -765,21 +651,20 @@ def _hph(H, P, n_rows: int):
 
 
 def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stale: tuple = (),
-             fused: bool | str = False, records: bool = True) -> EKFState:
+             records: bool = True, prep=None) -> EKFState:
   """One tick: IMU prediction over dt (s), gated fusion of every fresh measurement, timeout resets.
 
   stale: static names of sensors (only "gps" is recognised) known to have no fresh sample this tick, for every
   vehicle: their observation rows are left out of the traced fusion (cheaper; the same result as the full tick when
   their fresh flags are indeed 0, which the caller guarantees: a fresh sample would be ignored).
-  fused: under vmap, run the covariance work as one GPU kernel for the batch (dt must be a Python float; GPU only):
-  True or "triton" the Triton tile kernel (`ekf_kernel`, P "padded" [16, 16]); "lanes" the per-lane Mosaic GPU
-  kernel (`ekf_lanes.prep_tick`, NVIDIA Hopper or newer, P best kept "packed"), which computes the prediction, H
-  and the innovations too (`_tick_lanes_prep`). "interpret": the Triton kernel through Pallas'
-  interpreter (tests, on the CPU). The same filter every way (to float32 rounding), P in any layout.
   records: False leaves the per-channel records (innov, test_ratio, accepted, fresh) as `state` holds them, for a
   filter whose records nobody reads (static; the env's `EnvConfig.ekf_records`): the same filter otherwise, three
-  [11]-float selects and a write fewer per tick (on an H200 at 65,536 envs ~0.1 / ~0.45 ms per drone / rover env step
-  of 5 ticks, BENCHMARKS.md session 38).
+  [11]-float selects and a write fewer per tick.
+  prep: None (the XLA filter), or a function that does the tick's prediction, innovations and covariance work in
+  its place: prep(cfg, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z [13], enable [13] bool (the flow
+  rows before the predicted-height check), due [3] bool, dt, stale) -> (P, dx [15], ratio [13], accept [13] bool,
+  innov [13], the predicted pos [3], vel [3], quat [4]). ekf_lanes.ekf_step passes the lanes kernel's (this module
+  knows no kernel).
   """
   f32 = jnp.float32
   gps = (readings.gps_fresh > 0.5) & ("gps" not in stale)
@@ -796,9 +681,9 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
   ages = jnp.stack([state.gps_pos_age, state.gps_vel_age, state.hgt_age]) + dt
   due = jnp.stack([gps, gps, baro]) & (ages > cfg.reset_timeout)
-  if fused == "lanes":   # the prediction, H and the innovations in the kernel too
+  if prep is not None:   # the prediction, H, the innovations and the covariance work elsewhere (a kernel)
     enable = with_component(fresh_rows(flow_pre), 2, gps & cfg.fuse_gps_height)
-    P, dx, ratio, accept, innov, pos, vel, quat = _tick_lanes_prep(
+    P, dx, ratio, accept, innov, pos, vel, quat = prep(
       cfg, state.P, state.quat, state.vel, state.pos, state.gyro_bias, state.accel_bias, readings.gyro,
       readings.accel, z, enable, due, dt, tuple(stale))
     s = state.replace(pos=pos, vel=vel, quat=quat)
@@ -808,12 +693,7 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
     fresh = fresh_rows(flow_pre & (s.pos[2] >= cfg.flow_min_height))
     enable = with_component(fresh, 2, gps & cfg.fuse_gps_height)
     innov, H = _innovations(cfg, s, z)
-    if fused:
-      P, dx, ratio, accept = _cov_tick_fused(cfg, state.P, A, B, dt, H, innov, enable, due, tuple(stale),
-                                             interpret=fused == "interpret")
-    else:
-      P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due,
-                                       tuple(stale))
+    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due, tuple(stale))
   s = _inject(cfg, s.replace(P=P), dx)
 
   # per-channel records (held while a channel is not fresh)

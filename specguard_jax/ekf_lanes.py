@@ -1,56 +1,173 @@
-"""The EKF tick's covariance work with one vehicle per GPU lane: a Pallas Mosaic GPU kernel (NVIDIA Hopper).
+"""The EKF tick as one Pallas Mosaic GPU kernel, one vehicle per GPU lane (NVIDIA Hopper or newer), and the choice
+between it and the XLA filter (`resolve_ekf_kernel`, `ekf_step`).
 
-What it computes is `ekf._cov_tick` (the XLA form, the reference and the CPU path): the prediction of P, the tick's
-symmetrisation and clamps, the grouped innovation gates, the sequential scalar fusion of the accepted rows (P
-updated row by row, `ekf._rows_rolled`'s form; `_cov_tick`'s low-rank form is the same filter), the timeout resets and
-the closing clean-up. It returns what `_cov_tick` returns (P, dx [B, 15], test
-ratio [B, 13], accept [B, 13] bool), equal to float32 rounding (`tests/test_ekf_lanes.py`).
-
-One program owns 128 vehicles, one per thread of a warpgroup, so in the kernel every per-vehicle quantity is a [128]
-vector and the tick is straight-line per-lane code with P's symmetry and F's / H's sparsity resolved statically: no
-shuffles, no masked reductions, no [B, 15, 15] intermediates in global memory (what the XLA form's ~60 kernels per
-tick and the Triton tile kernel `ekf_kernel.py` pay for). P lives in registers during the tick.
-Memory layout: P batch-major as the env holds it, no transposes: packed ([B, 121]: its upper triangle and a zero,
-`ekf.pack_p`; the env keeps P so with this kernel, `ekf_init(p_layout="packed")`); each program copies its 128
-vehicles' contiguous rows into shared memory with one TMA copy and each lane reads its own vehicle's entries at an
-odd stride (conflict-free); P written back in place. The other inputs vehicle-minor ([n_aux, B], `pack_aux`, one
-fusion of XLA's), the outputs over them: 98 KB per program, two per SM. (Session 35's layout, XLA transposing the inputs to
-vehicle-minor [rows, B] and back, moved ~3x the bytes: 207 / 129 us per drone tick against 140 / 105.)
-
-`prep_tick` (what `ekf.ekf_step` runs with fused="lanes"): the same kernel with the tick's inputs prepared per lane
-too: the nominal state's prediction, F's blocks, H and the innovations from the state and the readings
-(`prep_inputs`, the arithmetic of ekf._predict_nominal / ekf._innovations), so XLA hands the kernel 51 rows of
-state and reading components instead of deriving `pack_aux`'s 69-75 rows (each row of that concatenate fusion
-re-derived its value from ~10 operands: 24 us per rover tick at 65,536 vehicles, session 39's profile). The
-trainer's env step at 65,536 envs on one H200 (session 40): rover 1.986 ms against 2.067 with `cov_tick`, drone 2.773
-against 2.798.
-
-Lowering: `plgpu.kernel` with Lane semantics. With jax 0.10 / 0.11 `pallas_call` lowers only to Triton on GPUs,
-and Triton did not compile this straight-line form in 9 minutes (session 11); jax 0.11's default Warpgroup semantics
-did not in 285 s (its layout inference grows faster than linearly with the kernel's length, session 34), where Lane
-semantics compiles the whole tick in 3-8 s. Measured (BENCHMARKS.md sessions 35-36, H200, 65,536 vehicles, us per
-tick, every row fresh / GPS rows stale): drone 139.9 / 104.6 against XLA's 677.9 / 488.1 and the Triton kernel's
-453.7 / 344.7. A form that loops over P in shared memory (to keep the kernel short) compiled as fast but ran slower
-than XLA (latency-bound on shared memory), so the tick stays straight-line code with P in registers.
-Registers (ptxas, `MOSAIC_GPU_DUMP_PTXAS=1 python bench/ekf_lanes.py --prep`): 255 per thread, 4 B of spills since
-the rows are fused with P updated row by row (session 41); the low-rank form held every row's P h_i and u_i to the
-end and spilled ~1.1 KB per thread on the GPS tick (136 B on the rover's other ticks): `prep_tick` at 65,536 rovers on
-an H200, GPS-free / GPS tick, 63.2 / 69.4 us per tick against 67.5 / 162.9 (drone 62.0 / 70.7 against 66.0 / 137.6),
-the trainer's env step rover 2.005 -> 1.894 ms, drone 2.779 -> 2.696.
+`prep_tick` computes for a batch what `ekf.ekf_step` computes in XLA before the injection and the records: the
+nominal state's prediction, H and the innovations (`prep_inputs`), then the covariance work (`tick_body`), equal to
+float32 rounding (tests/test_ekf_lanes.py checks the kernel's body, run in plain JAX on the CPU, against the XLA tick).
+Why: in XLA the vmapped tick is dozens of small kernels over [B, 15, 15] buffers; here each thread of a warpgroup owns
+one vehicle, the tick is straight-line code with P's symmetry and F's / H's sparsity resolved statically, and P stays
+in registers for the whole tick. P is packed ([B, 121], `ekf.pack_p`; the env keeps it so with this kernel), copied
+into shared memory with one TMA copy per 128 vehicles and written back in place; the other inputs come vehicle-minor
+([51, B], `pack_prep`). Lowered with Lane semantics (Triton and Warpgroup semantics do not compile code this long).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
+from specguard_jax import ekf as ekf_lib
 from specguard_jax.ekf import N_ERR, N_PACKED, TRI, TRI_INDEX, as_square, layout_like, pack_p, p_layout, tri_index
 
 N_ROWS = 13
 LANES = 128     # vehicles per program: one per thread of a warpgroup
+EKF_KERNELS = ("auto", "xla", "lanes")    # EnvConfig.ekf_kernel / TrainConfig.ekf_kernel
+JAX_VERSION = tuple(int(x) for x in jax.__version__.split(".")[:2])
+# P written in place through a jax Ref (jax >= 0.11; jax 0.10's Pallas cannot discharge a Ref into a Mosaic GPU kernel)
+IN_PLACE = JAX_VERSION >= (0, 11)
+
+
+def _compute_capability() -> float | None:
+  """The default device's CUDA compute capability (None: not a GPU, or not reported)."""
+  if jax.default_backend() != "gpu":
+    return None
+  cc = getattr(jax.devices()[0], "compute_capability", None)
+  return None if cc is None else float(cc)
+
+
+def lanes_kernel_supported() -> bool:
+  """Whether the default device runs the lanes kernel: an NVIDIA GPU of compute capability 9.0 (Hopper) or newer."""
+  cc = _compute_capability()
+  return cc is not None and cc >= 9.0
+
+
+def resolve_ekf_kernel(name) -> str:
+  """An ekf_kernel setting ("auto", "xla" or "lanes") as the kernel that runs: "xla" or "lanes".
+
+  "auto": "lanes" on an NVIDIA GPU of compute capability >= 9.0 with jax >= 0.11 (with jax 0.10 the kernel lowers but
+  is opt-in), else "xla". A one-line ValueError for an unknown name, or for "lanes" on a device that cannot run it."""
+  if name not in EKF_KERNELS:
+    raise ValueError(f"ekf_kernel must be one of {', '.join(EKF_KERNELS)}; got {name!r}")
+  if name == "auto":
+    return "lanes" if lanes_kernel_supported() and JAX_VERSION >= (0, 11) else "xla"
+  if name == "lanes":
+    if jax.default_backend() != "gpu":
+      raise ValueError(f"ekf_kernel='lanes' needs a GPU (the default backend is {jax.default_backend()}): "
+                       f"use ekf_kernel='xla' or 'auto'")
+    cc = _compute_capability()
+    if cc is not None and cc < 9.0:
+      raise ValueError(f"ekf_kernel='lanes' needs an NVIDIA Hopper GPU or newer (compute capability 9.0); "
+                       f"{jax.devices()[0].device_kind} is {cc}: use ekf_kernel='xla' or 'auto'")
+  return name
+
+
+def ekf_step(cfg: ekf_lib.EKFConfig, state: ekf_lib.EKFState, readings, dt, stale: tuple = (), kernel: str = "xla",
+             records: bool = True) -> ekf_lib.EKFState:
+  """`ekf.ekf_step` on the resolved kernel (`resolve_ekf_kernel`): "xla" the XLA filter; "lanes" the tick's
+  prediction, innovations and covariance work as `prep_tick` under vmap (dt a Python float; P best kept packed),
+  the same filter to float32 rounding."""
+  if kernel not in ("xla", "lanes"):
+    raise ValueError(f"ekf_step: kernel must be 'xla' or 'lanes' (resolve_ekf_kernel); got {kernel!r}")
+  return ekf_lib.ekf_step(cfg, state, readings, dt, stale=stale, records=records,
+                          prep=_lanes_tick if kernel == "lanes" else None)
+
+
+@dataclasses.dataclass(frozen=True)
+class CovSpec:
+  """Static description of one tick's covariance work (hashable: the kernel is traced for it).
+
+  dt: tick (s). q: [15] process-noise variances added to P's diagonal. R, gate: [13] measurement variances and gates
+  (sigma). used: [13] whether each row can be fused at all this tick (static). group_of_row: [13] gate group of each
+  row (a group is rejected as a whole). var_min, var_max: [15] diagonal clamps. h_support: [13] tuples, the
+  error-state columns each row of H can be non-zero in.
+  """
+
+  dt: float
+  q: tuple
+  R: tuple
+  gate: tuple
+  used: tuple
+  group_of_row: tuple
+  var_min: tuple
+  var_max: tuple
+  h_support: tuple
+
+  def h_entries(self) -> tuple:
+    """((row, column), ...) of H the kernel computes: the support of every usable row, in row order."""
+    return tuple((i, c) for i in range(N_ROWS) if self.used[i] for c in self.h_support[i])
+
+
+def cov_spec(cfg: ekf_lib.EKFConfig, dt: float, stale: tuple) -> CovSpec:
+  """The static description of the tick's covariance work that the kernel is traced for."""
+  noise, gate = ekf_lib._noise_and_gates(cfg)
+  dt = float(dt)
+  q = ekf_lib._process_noise(cfg, dt, np)
+  return CovSpec(
+    dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
+    gate=tuple(float(v) for v in gate),
+    used=tuple(ekf_lib._row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=ekf_lib._GROUP_OF_ROW,
+    var_min=tuple(float(v) for v in ekf_lib._VAR_MIN), var_max=tuple(float(v) for v in ekf_lib._VAR_MAX),
+    h_support=ekf_lib._H_SUPPORT)
+
+
+def resets_of(cfg: ekf_lib.EKFConfig) -> tuple:
+  """ekf._RESETS with their variances, as the static tuple the kernel is traced for."""
+  return tuple((tuple(cols), tuple(rows), how, float(v))
+               for (cols, rows, how), v in zip(ekf_lib._RESETS, ekf_lib._reset_variances(cfg)))
+
+
+@struct.dataclass
+class _Nominal:
+  """The nominal state's fields `ekf._predict_nominal` and `ekf._innovations` read (an EKFState's, without P and the
+  records)."""
+  pos: jnp.ndarray
+  vel: jnp.ndarray
+  quat: jnp.ndarray
+  gyro_bias: jnp.ndarray
+  accel_bias: jnp.ndarray
+
+
+def reference_tick(cfg: ekf_lib.EKFConfig, dt: float, stale: tuple, P, quat, vel, pos, gyro_bias, accel_bias, gyro,
+                   accel, z, enable, due):
+  """What `prep_tick` computes, for one vehicle in XLA (the reference, and the unbatched path of `_lanes_tick`).
+  enable [13] bool: the flow rows before the predicted-height check. Returns (P, dx [15], ratio [13], accept [13]
+  bool, innov [13] before the gates, the predicted pos [3], vel [3], quat [4])."""
+  noise, gate = ekf_lib._noise_and_gates(cfg)
+  s, A, B = ekf_lib._predict_nominal(cfg, _Nominal(pos=pos, vel=vel, quat=quat, gyro_bias=gyro_bias,
+                                                   accel_bias=accel_bias), gyro, accel, dt)
+  rows = jnp.arange(N_ROWS)
+  enable = enable & jnp.where((rows == 8) | (rows == 9), s.pos[2] >= cfg.flow_min_height, True)
+  innov, H = ekf_lib._innovations(cfg, s, z)
+  P, dx, ratio, accept = ekf_lib._cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate),
+                                           enable, due, stale, unrolled=True)
+  return P, dx, ratio, accept, innov, s.pos, s.vel, s.quat
+
+
+def _lanes_tick(cfg: ekf_lib.EKFConfig, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due,
+                dt: float, stale: tuple):
+  """`ekf.ekf_step`'s prep hook: one vehicle's tick but the injection and the records, whose vmap runs `prep_tick`
+  on the whole batch (unbatched: `reference_tick`). Arguments and results as `reference_tick`'s."""
+  spec = cov_spec(cfg, dt, stale)
+
+  @jax.custom_batching.custom_vmap
+  def tick(*args):
+    return reference_tick(cfg, dt, stale, *args)
+
+  @tick.def_vmap
+  def _(axis_size, in_batched, *args):
+    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
+    return prep_tick(spec, resets_of(cfg), *args, flow_min_height=float(cfg.flow_min_height)), (True,) * 8
+
+  return tick(P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# the kernel
 
 
 def _finite(x):
@@ -58,58 +175,18 @@ def _finite(x):
   return jnp.abs(x) < jnp.inf
 
 
-class Layout:
-  """Offsets of a vehicle's inputs in aux and of its outputs in out (the outputs overwrite the inputs in place).
+def tick_body(spec, resets, p_load, p_store, store, inputs, o):
+  """The per-lane covariance tick (`ekf._cov_tick`'s filter) as straight-line code on [lanes] vectors, one vehicle
+  per lane.
 
-  aux: A [9], B [9] (F's blocks, row-major), H's entries on `spec.h_entries()` [n_h], innov [13], enable [13]
-  (1.0 / 0.0), due [3] (1.0 / 0.0, order ekf._RESETS). out: dx [15], test ratio [13], accept [13] (1.0 / 0.0).
-  """
-
-  def __init__(self, spec):
-    self.A, self.B, self.H = 0, 9, 18
-    self.innov = self.H + len(spec.h_entries())
-    self.en = self.innov + N_ROWS
-    self.due = self.en + N_ROWS
-    self.n_aux = self.due + 3
-    self.dx, self.ratio, self.acc = 0, N_ERR, N_ERR + N_ROWS
-    self.n_out = N_ERR + 2 * N_ROWS
-
-
-def _layout_inputs(spec, load):
-  """The tick's inputs besides P from aux rows placed as `Layout` places them: dict(A, B [3][3], hd {row: {col: h}},
-  innov [13], enable [13] bool, due [3] bool), every value a [lanes] vector."""
-  o = Layout(spec)
-  hd = {}
-  for e, (i, c) in enumerate(spec.h_entries()):
-    hd.setdefault(i, {})[c] = load(o.H + e)
-  return dict(A=[[load(o.A + 3 * i + m) for m in range(3)] for i in range(3)],
-              B=[[load(o.B + 3 * i + m) for m in range(3)] for i in range(3)], hd=hd,
-              innov=[load(o.innov + i) for i in range(N_ROWS)], enable=[load(o.en + i) > 0.5 for i in range(N_ROWS)],
-              due=[load(o.due + b) > 0.5 for b in range(3)])
-
-
-def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", inputs=None, o=None):
-  """The per-lane covariance tick as straight-line code on [lanes] vectors (one vehicle per lane).
-
-  p_load(i, j) -> P[i, j] and p_store(i, j, v) sets P[i, j] and P[j, i], both for i <= j; load(k) -> entry k of aux,
-  store(k, v) sets entry k of out (both as `Layout` places them); every value a [lanes] vector. Every load comes
-  before the first store, so P and out may overwrite their inputs in place (the kernel's shared memory does).
+  p_load(i, j) -> P[i, j] and p_store(i, j, v) sets P[i, j] and P[j, i], both for i <= j; store(k, v) sets output row
+  k; every value a [lanes] vector. P is read before the first store, so it may be overwritten in place.
   resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
-  stage: "full" (the tick), or a probe for compile and run time (bench/ekf_lanes.py): "predict" (the prediction and
-  its clamps alone, the other outputs zero) or "copy" (P and out copied from P and the first rows of aux).
-  inputs: the inputs besides P as `_layout_inputs` returns them (default: loaded from `Layout`'s rows); o: where the
-  outputs go (attributes dx, ratio, acc, n_out; default `Layout(spec)`)."""
+  inputs: dict(A, B [3][3] F's blocks, hd {row: {col: h}} H on `spec.h_entries()`, innov [13], enable [13] bool,
+  due [3] bool), as `prep_inputs` returns them. o: where the outputs go (attributes dx, ratio, acc: `PrepLayout`)."""
   n = N_ERR
-  o = Layout(spec) if o is None else o
   tri = [p_load(i, j) for (i, j) in TRI]
-  if stage == "copy":      # memory floor: every output row from an input row
-    for k, (i, j) in enumerate(TRI):
-      p_store(i, j, tri[k] * 1.0)
-    for k in range(o.n_out):
-      store(k, load(k) * 1.0)
-    return
   P = [[tri[tri_index(i, j)] for j in range(n)] for i in range(n)]
-  inputs = _layout_inputs(spec, load) if inputs is None else inputs
   A, B = inputs["A"], inputs["B"]
   dt = spec.dt
 
@@ -158,13 +235,6 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
     return out
 
   P = condition(X, True)
-  if stage == "predict":   # compile-size probe: the prediction alone
-    for (i, j) in TRI:
-      p_store(i, j, P[i][j])
-    zero = inputs["innov"][0] * 0.0
-    for r in range(o.n_out):
-      store(r, zero)
-    return
 
   # ---- gates (ekf._gate) and the sequential fusion of the accepted rows
   hd = inputs["hd"]
@@ -177,7 +247,7 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
     return t
 
   # Gates from the predicted P: S_i = h_i' P h_i + R_i as a quadratic form over h_i's few entries (no P h_i vector
-  # is kept for later: a [15] vector per row held across the fusion spilled registers to local memory, session 41).
+  # is kept for later: a [15] vector per row held across the fusion would spill registers to local memory).
   innov, enable = inputs["innov"], inputs["enable"]
   ratio, bad = [], []
   for i in range(N_ROWS):
@@ -198,8 +268,8 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
 
   # Sequential scalar fusion with P updated after each row (ekf._rows_rolled's form; ekf._rows_unrolled's low-rank
   # form, the XLA reference, is the same filter): per row P h_i from the current P, then P -= c (P h_i)(P h_i)' on
-  # the triangle. Live across rows: P's 120 entries, dx, one [15] vector; the low-rank form kept every row's P_0 h_i
-  # and u_i until the end (~390 values: 255 registers and ~1.1 KB of spills per thread on the GPS tick).
+  # the triangle. Live across rows: P's 120 entries, dx, one [15] vector (the low-rank form would keep every row's
+  # P_0 h_i and u_i, ~390 values, more than a thread's registers).
   dx = [None] * n
   for i in used:
     pht = [hdot(i, [P[c][r] for c in range(n)]) for r in range(n)]
@@ -243,26 +313,9 @@ def tick_body(spec, resets, p_load, p_store, load, store, stage: str = "full", i
     store(o.acc + i, jnp.where(accept[i], 1.0, 0.0))
 
 
-def pack_aux(spec, A, B, H, innov, enable, due):
-  """The tick's per-vehicle inputs besides P, vehicle-minor: aux [n_aux, B] float32, rows as `Layout` places them
-  (XLA writes it in one fusion, reading each input coalesced; batch-major [B, n_aux] it reads them ~32 arrays per
-  warp: 70 us per drone tick at 65,536 vehicles, session 36)."""
-  nb = A.shape[0]
-  hd = jnp.stack([H[:, i, c] for i, c in spec.h_entries()], axis=1)
-  aux = jnp.concatenate([A.reshape(nb, 9), B.reshape(nb, 9), hd, innov, enable.astype(jnp.float32),
-                         due.astype(jnp.float32)], axis=1)
-  return aux.astype(jnp.float32).T
-
-
-def _unpack_out(out, nb, spec):
-  """out [>= n_out, >= B] -> (dx [B, 15], ratio [B, 13], accept [B, 13] bool)."""
-  lay = Layout(spec)
-  o = out[:lay.n_out, :nb].T
-  return o[:, lay.dx:lay.dx + N_ERR], o[:, lay.ratio:lay.ratio + N_ROWS], o[:, lay.acc:lay.acc + N_ROWS] > 0.5
-
 
 def _packed_io(fn):
-  """fn on P packed [B, 121] -> the same taking and returning P in any layout (ekf.P_LAYOUTS)."""
+  """fn on P packed [B, 121] -> the same taking and returning P in any layout ("square" [B, 15, 15] or "packed")."""
   @functools.wraps(fn)
   def wrapped(spec, resets, P, *args, **kw):
     if p_layout(P) == "packed":
@@ -270,69 +323,6 @@ def _packed_io(fn):
     Pk, *rest = fn(spec, resets, pack_p(as_square(P)), *args, **kw)
     return (layout_like(as_square(Pk), P), *rest)
   return wrapped
-
-
-@_packed_io
-def cov_tick_xla(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full"):
-  """`tick_body` in plain JAX over [B] vectors: the kernel's arithmetic on any backend (tests; eager on the CPU is
-  quicker than compiling its ~10^4 operations). Arguments and results as `cov_tick`'s."""
-  aux = pack_aux(spec, A, B, H, innov, enable, due)
-  p_out, out = dict(enumerate(P.T)), {}
-
-  def p_store(i, j, v):
-    p_out[TRI_INDEX[(i, j)]] = v
-
-  tick_body(spec, resets, lambda i, j: P[:, TRI_INDEX[(i, j)]], p_store, lambda k: aux[k], out.__setitem__, stage)
-  return (jnp.stack([p_out[k] for k in range(N_PACKED)], axis=1),
-          *_unpack_out(jnp.stack([out[k] for k in range(len(out))]), P.shape[0], spec))
-
-
-JAX_VERSION = tuple(int(x) for x in jax.__version__.split(".")[:2])
-# P written in place through a jax Ref (jax >= 0.11; jax 0.10's Pallas cannot discharge a Ref into a Mosaic GPU kernel)
-IN_PLACE = JAX_VERSION >= (0, 11)
-
-
-@functools.partial(jax.jit, static_argnames=("spec", "resets", "stage", "in_place"))
-@_packed_io
-def cov_tick(spec, resets, P, A, B, H, innov, enable, due, stage: str = "full", in_place: bool = IN_PLACE):
-  """The tick's covariance work for a batch of B vehicles as one Mosaic GPU kernel (NVIDIA Hopper or newer).
-
-  P: [B, 121] packed (`ekf.pack_p`, the env's layout with this kernel), returned packed; or P in another layout
-  (ekf.P_LAYOUTS), returned in it (packed and unpacked around the kernel). The covariance before the prediction.
-  A, B: [B, 3, 3] F's blocks (`ekf._predict_nominal`). H: [B, 13, 15] observation Jacobian (its entries on
-  `spec.h_entries()` are read). innov: [B, 13]. enable: [B, 13] bool. due: [B, 3] bool, the timeout resets due
-  (order ekf._RESETS). spec: `ekf._cov_spec`; resets: `resets_of`. Returns (P, dx [B, 15], ratio [B, 13],
-  accept [B, 13] bool). stage: see `tick_body`.
-
-  Layout: P batch-major as the env holds it, no transposes: [B, 121] row-major viewed as [B 121 / 128, 128], so
-  program b's 128 vehicles are the rows 121 b + [0, 121), one TMA copy into shared memory, where lane v reads its
-  vehicle's entry k at word 121 v + k (121 is odd: the 32 lanes of a warp hit 32 banks); written back in place and
-  copied out the same way. The other inputs vehicle-minor (`pack_aux`, [n_aux, B]: program b's columns, row k a
-  [128] vector), the outputs written over them and copied out to [n_out, B]. 98 KB per program, two per SM.
-  in_place: P's output is its input's buffer (a jax Ref; default on jax >= 0.11), else a new array (XLA then copies
-  it into the loop's carry: ~16 us per tick at 65,536 vehicles)."""
-  @jax.custom_batching.custom_vmap
-  def call(*args):
-    return _kernel(spec, resets, *args, stage=stage, in_place=in_place)
-
-  @call.def_vmap
-  def _(axis_size, in_batched, *args):   # an outer vmap (a sweep's members): its axis joins the kernel's batch
-    args = [x if b else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b in zip(args, in_batched)]
-    outs = call(*[x.reshape((-1,) + x.shape[2:]) for x in args])
-    return tuple(o.reshape((axis_size, -1) + o.shape[1:]) for o in outs), (True,) * len(outs)
-
-  return call(P, A, B, H, innov, enable, due)
-
-
-def _kernel(spec, resets, P, A, B, H, innov, enable, due, stage, in_place):
-  """cov_tick's kernel call on P packed [B, 121] (B unbatched: one flat batch)."""
-  lay = Layout(spec)
-
-  def body(p_load, p_store, load, store):
-    tick_body(spec, resets, p_load, p_store, load, store, stage)
-
-  Po, out = _lanes_call(P, pack_aux(spec, A, B, H, innov, enable, due), lay.n_aux, lay.n_out, body, in_place)
-  return (Po, *_unpack_out(out, P.shape[0], spec))
 
 
 def _lanes_call(P, aux, n_rows, n_out, body, in_place):
@@ -388,22 +378,9 @@ def _lanes_call(P, aux, n_rows, n_out, body, in_place):
   return Po.reshape(bp, N_PACKED)[:nb], out
 
 
-def resets_of(cfg):
-  """ekf._RESETS with their variances, as the static tuple the kernel is traced for."""
-  from specguard_jax import ekf as ekf_lib
-  return tuple((tuple(cols), tuple(rows), how, float(v))
-               for (cols, rows, how), v in zip(ekf_lib._RESETS, ekf_lib._reset_variances(cfg)))
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# The tick with its inputs prepared in the kernel: F's blocks, H and the innovations computed per lane from the
-# nominal state and the readings (what ekf._predict_nominal and ekf._innovations do in XLA). The kernel's input block
-# is then 51 rows, each a copy of one state or reading component, where `cov_tick`'s is 69-75 rows that XLA computes
-# in one concatenate fusion, every row re-deriving its value from ~10 operands (rover profile, session 39: 24 us of
-# that fusion per tick against the kernel's 47). The prepared inputs stay in registers (through shared memory, as
-# `cov_tick`'s kernel reads its inputs, was slower: one H200, 65,536 envs, the trainer's env, session 40,
-# bench/env_step_ab.py, ms per step: rover 1.986 in registers, 2.003 through shared memory, 2.066-2.068 with
-# `cov_tick`; drone 2.773 / 2.798 / 2.797-2.799).
+# The tick's inputs are prepared in the kernel: F's blocks, H and the innovations computed per lane from the nominal
+# state and the readings (what ekf._predict_nominal and ekf._innovations do in XLA), so XLA hands the kernel 51 rows,
+# each a copy of one state or reading component, and the prepared inputs stay in registers.
 _PREP_IN = (("quat", 4), ("vel", 3), ("pos", 3), ("gb", 3), ("ab", 3), ("gyro", 3), ("accel", 3), ("z", N_ROWS),
             ("en", N_ROWS), ("due", 3))
 _PREP_OUT = (("dx", N_ERR), ("ratio", N_ROWS), ("acc", N_ROWS), ("innov", N_ROWS), ("pos", 3), ("vel", 3),
@@ -474,7 +451,7 @@ def _q_rot(q):
 
 def prep_inputs(spec, flow_min_height: float, x: dict):
   """ekf._predict_nominal and ekf._innovations per lane. x: the `PrepLayout` inputs by name, lists of [lanes]
-  vectors. Returns (the inputs of `tick_body` as `_layout_inputs` gives them, the innovations before the gates [13],
+  vectors. Returns (`tick_body`'s inputs, the innovations before the gates [13],
   the predicted pos [3], vel [3], quat [4])."""
   from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
   dt = spec.dt
@@ -524,8 +501,8 @@ def prep_inputs(spec, flow_min_height: float, x: dict):
 
 
 def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store):
-  """The tick with its inputs prepared per lane (`prep_inputs`, held in registers), then `tick_body`; loads and
-  stores as `tick_body`'s, rows as `PrepLayout` places them."""
+  """The tick with its inputs prepared per lane (`prep_inputs`, held in registers), then `tick_body`. load(k) ->
+  input row k, store(k, v) sets output row k (rows as `PrepLayout` places them; stores may overwrite the inputs)."""
   lay = PrepLayout()
   x = {name: [load(lay.inp[name] + k) for k in range(size)] for name, size in _PREP_IN}
   inputs, innov, pos, vel, quat = prep_inputs(spec, flow_min_height, x)
@@ -533,7 +510,7 @@ def prep_body(spec, resets, flow_min_height, p_load, p_store, load, store):
   for name, vals in (("innov", innov), ("pos", pos), ("vel", vel), ("quat", quat)):
     for k, v in enumerate(vals):
       store(lay.out[name] + k, v)
-  tick_body(spec, resets, p_load, p_store, load, store, inputs=inputs, o=lay)
+  tick_body(spec, resets, p_load, p_store, store, inputs, lay)
 
 
 def pack_prep(quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due):
@@ -575,7 +552,7 @@ def prep_tick_xla(spec, resets, P, *inputs, flow_min_height: float):
 def prep_tick(spec, resets, P, quat, vel, pos, gyro_bias, accel_bias, gyro, accel, z, enable, due, *,
               flow_min_height: float, in_place: bool = IN_PLACE):
   """The whole EKF tick but the injection and the records as one Mosaic GPU kernel: the nominal state's prediction,
-  H, the innovations (`prep_inputs`) and `cov_tick`'s covariance work, per lane.
+  H, the innovations (`prep_inputs`) and the covariance work (`tick_body`), per lane.
 
   P: [B, 121] packed (or any layout, returned in it). quat [B, 4], vel, pos, gyro_bias, accel_bias [B, 3]: the
   nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf._measurement_rows`; enable

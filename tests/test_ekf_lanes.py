@@ -1,7 +1,6 @@
-"""The per-lane covariance kernel (specguard_jax/ekf_lanes.py, `fused_ekf="lanes"`): its body equals ekf._cov_tick,
-its Mosaic GPU kernel lowers for CUDA, its packed layouts of P and of the other inputs, and ekf_step / the env route a
-vmapped batch through it with P kept packed (compiled, checked and timed on a GPU: the gpu-marked test here,
-bench/ekf_lanes.py, BENCHMARKS.md sessions 35-36)."""
+"""The lanes EKF kernel (specguard_jax/ekf_lanes.py, `ekf_kernel="lanes"`): its body equals the XLA filter's tick,
+its Mosaic GPU kernel lowers for CUDA, P's packed layout, the choice of kernel (`resolve_ekf_kernel`), and the env
+routes a vmapped batch through it with P kept packed (compiled and checked on a GPU: the gpu-marked test here)."""
 
 import jax
 import jax.numpy as jnp
@@ -10,28 +9,62 @@ import pytest
 
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import ekf_lanes
-from test_ekf_kernel import DT, _batch, _check, _rollouts, _xla
+
+DT = 0.02
 
 
 def _cfg(vehicle):
   return ekf_lib.EKFConfig.drone() if vehicle == "drone" else ekf_lib.EKFConfig.rover()
 
 
-@pytest.mark.parametrize("vehicle", ["drone", "rover"])
-@pytest.mark.parametrize("stale", [(), ("gps",)])
-def test_lane_body_equals_xla_tick(vehicle, stale):
-  cfg = _cfg(vehicle)
-  args = _batch(cfg, 256, seed=5)
-  # eager: ~10^4 small ops, quicker op by op on the CPU than one XLA compile of the straight-line code
-  out = ekf_lanes.cov_tick_xla(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args)
-  _check(_xla(cfg, stale)(*args), out)
+def _spd(n, seed):
+  """[n, 15, 15] random symmetric positive definite covariances."""
+  rng = np.random.default_rng(seed)
+  L = rng.normal(size=(n, 15, 15)).astype(np.float32) * 0.3
+  return np.einsum("bij,bkj->bik", L, L) + np.eye(15, dtype=np.float32) * 0.01
+
+
+def _check(ref, out):
+  """(P, dx, ratio, accept) of the kernel's arithmetic against the XLA reference's, P square."""
+  P_r, dx_r, ratio_r, acc_r = [np.asarray(x) for x in ref]
+  P, dx, ratio, acc = [np.asarray(x) for x in out]
+  assert np.array_equal(acc, acc_r)
+  assert 0 < acc.mean() < 1            # both accepted and rejected rows in the batch
+  np.testing.assert_allclose(ratio, ratio_r, rtol=2e-5, atol=1e-7)
+  # per vehicle, relative to the size of its own P / dx
+  scale_P = np.max(np.abs(P_r), axis=(1, 2), keepdims=True)
+  assert np.max(np.abs(P - P_r) / scale_P) < 2e-5
+  scale_dx = np.max(np.abs(dx_r), axis=1, keepdims=True) + 1e-12
+  assert np.max(np.abs(dx - dx_r) / scale_dx) < 1e-4     # GPU: fused multiply-adds round differently
+  assert np.array_equal(P, np.swapaxes(P, 1, 2))      # exactly symmetric
+
+
+def _rollouts(ref_env, env, steps: int):
+  """Both envs' (reset states, stacked step states) over `steps` zero-action steps of the same 3 vehicles, jitted."""
+  keys = jax.random.split(jax.random.PRNGKey(3), 3)
+
+  def rollout(e):
+    s0 = jax.vmap(e.reset)(keys)
+    step = lambda s, _: (jax.vmap(e.step)(s, jnp.zeros((3, 3))),) * 2
+    return s0, jax.lax.scan(step, s0, None, length=steps)[1]
+
+  return jax.jit(lambda: rollout(ref_env))(), jax.jit(lambda: rollout(env))()
+
+
+def _prep_xla(cfg, stale, args, dt=DT):
+  return ekf_lanes.prep_tick_xla(ekf_lanes.cov_spec(cfg, dt, stale), ekf_lanes.resets_of(cfg), *args,
+                                 flow_min_height=float(cfg.flow_min_height))
+
+
+def _reference(cfg, stale, args):
+  return jax.jit(jax.vmap(lambda *x: ekf_lanes.reference_tick(cfg, DT, stale, *x)))(*args)
 
 
 def _raw_batch(cfg, n, seed):
   """n random vehicles' inputs to `ekf_lanes.prep_tick`: P, the nominal state (some below the flow's minimum height),
   an IMU sample, observation rows near the state's (some far outside their gates), fresh flags, resets due."""
   rng = np.random.default_rng(seed)
-  P = _batch(cfg, n, seed)[0]
+  P = _spd(n, seed)
   f = lambda *shape, s=1.0: (rng.normal(size=(n,) + shape) * s).astype(np.float32)
   quat = f(4)
   quat /= np.linalg.norm(quat, axis=1, keepdims=True)
@@ -49,13 +82,12 @@ def _raw_batch(cfg, n, seed):
 @pytest.mark.parametrize("vehicle,stale", [("drone", ()), ("drone", ("gps",)), ("rover", ()), ("rover", ("gps",))])
 def test_prep_body_equals_the_xla_tick(vehicle, stale):
   """The tick with its inputs prepared per lane (`prep_tick`'s body: the prediction, H, the innovations, then the
-  covariance work) against ekf._tick_prep_xla (what ekf_step
-  computes in XLA), eager on the CPU."""
+  covariance work) against ekf_lanes.reference_tick (what ekf.ekf_step computes in XLA), eager on the CPU."""
   cfg = _cfg(vehicle)
   args = _raw_batch(cfg, 256, seed=6)
-  out = ekf_lanes.prep_tick_xla(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args,
+  out = ekf_lanes.prep_tick_xla(ekf_lanes.cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args,
                                 flow_min_height=float(cfg.flow_min_height))
-  ref = jax.jit(jax.vmap(lambda *x: ekf_lib._tick_prep_xla(cfg, DT, stale, *x)))(*args)
+  ref = jax.jit(jax.vmap(lambda *x: ekf_lanes.reference_tick(cfg, DT, stale, *x)))(*args)
   _check(ref[:4], out[:4])
   for r, o in zip(ref[4:], out[4:]):     # innovations before the gates, the predicted pos, vel, quat
     np.testing.assert_allclose(np.asarray(o), np.asarray(r), rtol=1e-5, atol=1e-5)
@@ -64,21 +96,9 @@ def test_prep_body_equals_the_xla_tick(vehicle, stale):
 def test_lane_body_catches_a_changed_tick():
   """The comparison above can fail: a lane body given another tick length differs from the reference."""
   cfg = _cfg("drone")
-  args = _batch(cfg, 64, seed=5)
-  out = ekf_lanes.cov_tick_xla(ekf_lib._cov_spec(cfg, 2 * DT, ()), ekf_lanes.resets_of(cfg), *args)
+  args = _raw_batch(cfg, 64, seed=5)
   with pytest.raises(AssertionError):
-    _check(_xla(cfg, ())(*args), out)
-
-
-@pytest.mark.parametrize("vehicle", ["drone", "rover"])
-def test_kernel_lowers_for_cuda(vehicle):
-  pytest.importorskip("jax.experimental.pallas.mosaic_gpu")
-  cfg = _cfg(vehicle)
-  args = _batch(cfg, 256, seed=0)
-  spec = ekf_lib._cov_spec(cfg, DT, ())
-  fn = jax.jit(lambda *x: ekf_lanes.cov_tick(spec, ekf_lanes.resets_of(cfg), *x))
-  text = fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
-  assert "mosaic_gpu" in text
+    _check(_reference(cfg, (), args)[:4], _prep_xla(cfg, (), args, dt=2 * DT)[:4])
 
 
 @pytest.mark.parametrize("vehicle", ["drone", "rover"])
@@ -87,7 +107,7 @@ def test_prep_kernel_lowers_for_cuda(vehicle):
   cfg = _cfg(vehicle)
   args = _raw_batch(cfg, 256, seed=0)
   args[0] = ekf_lib.pack_p(args[0])
-  spec = ekf_lib._cov_spec(cfg, DT, ("gps",))
+  spec = ekf_lanes.cov_spec(cfg, DT, ("gps",))
   fn = jax.jit(lambda *x: ekf_lanes.prep_tick(spec, ekf_lanes.resets_of(cfg), *x,
                                               flow_min_height=float(cfg.flow_min_height)))
   text = fn.trace(*args).lower(lowering_platforms=("cuda",)).as_text()
@@ -95,23 +115,19 @@ def test_prep_kernel_lowers_for_cuda(vehicle):
 
 
 def test_kernel_takes_and_returns_either_layout_of_P():
-  """cov_tick's P packed [B, 121] (the env's layout with this kernel), square [B, 15, 15] or padded [B, 16, 16],
-  returned in the same layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`).
-  Mosaic GPU's CPU interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on
-  the GPU only (`test_kernel_on_gpu_equals_xla_tick`, bench/ekf_lanes.py)."""
+  """prep_tick's P packed [B, 121] (the env's layout with this kernel) or square [B, 15, 15], returned in the same
+  layout; checked through the kernel's plain-JAX body, which shares the wrapper (`_packed_io`). Mosaic GPU's CPU
+  interpreter cannot run the kernel's shared-memory views (ref reshapes): its TMA plumbing is run on the GPU only
+  (`test_kernel_on_gpu_equals_xla_tick`)."""
   cfg = _cfg("rover")
-  args = _batch(cfg, 40, seed=2)
-  spec = ekf_lib._cov_spec(cfg, DT, ())
-  square = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), *args)
-  packed = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), ekf_lib.pack_p(args[0]), *args[1:])
+  args = _raw_batch(cfg, 40, seed=2)
+  square = _prep_xla(cfg, (), args)
+  packed = _prep_xla(cfg, (), [ekf_lib.pack_p(args[0])] + args[1:])
   assert square[0].shape == (40, 15, 15) and packed[0].shape == (40, ekf_lib.N_PACKED)
   np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(packed[0])), np.asarray(square[0]))
   np.testing.assert_array_equal(np.asarray(packed[0][:, -1]), 0.0)
   for x, y in zip(square[1:], packed[1:]):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  padded = ekf_lanes.cov_tick_xla(spec, ekf_lanes.resets_of(cfg), ekf_lib.in_layout(args[0], "padded"), *args[1:])
-  assert padded[0].shape == (40, 16, 16) and not np.any(np.asarray(padded[0])[:, 15])
-  np.testing.assert_array_equal(np.asarray(ekf_lib.as_square(padded[0])), np.asarray(square[0]))
 
 
 def test_packed_layout_helpers_equal_the_square_ones():
@@ -137,40 +153,49 @@ def test_packed_layout_helpers_equal_the_square_ones():
     ekf_lib.p_layout(jnp.zeros(14))
 
 
+def _fake_lanes_call(seen):
+  """ekf_lanes._lanes_call's stand-in on the CPU: the kernel's body on [B] vectors, rows in a dict (no TMA)."""
+  def fake(P, aux, n_rows, n_out, body, in_place):
+    seen.append(P.shape)
+    mem, p_out = dict(enumerate(aux)), dict(enumerate(P.T))
+
+    def p_store(i, j, v):
+      p_out[ekf_lib.TRI_INDEX[(i, j)]] = v
+
+    body(lambda i, j: P[:, ekf_lib.TRI_INDEX[(i, j)]], p_store, mem.__getitem__, mem.__setitem__)
+    return (jnp.stack([p_out[k] for k in range(ekf_lib.N_PACKED)], axis=1),
+            jnp.stack([jnp.broadcast_to(mem[k], (P.shape[0],)) for k in range(n_out)]))
+  return fake
+
+
 def test_an_outer_vmap_joins_the_kernels_batch(monkeypatch):
   """Under a second vmap (a sweep's members) the kernel still gets one flat batch: [members x B] vehicles, the
-  results split back per member (the kernel stood in for by its plain-JAX body on the CPU)."""
+  results split back per member (the kernel call stood in for by its plain-JAX body on the CPU)."""
   cfg = _cfg("drone")
-  spec, resets = ekf_lib._cov_spec(cfg, DT, ()), ekf_lanes.resets_of(cfg)
+  spec, resets = ekf_lanes.cov_spec(cfg, DT, ()), ekf_lanes.resets_of(cfg)
   seen = []
-
-  def fake(spec, resets, P, *args, stage, in_place):
-    seen.append(P.shape)
-    return ekf_lanes.cov_tick_xla(spec, resets, P, *args, stage=stage)
-
-  monkeypatch.setattr(ekf_lanes, "_kernel", fake)
-  members = [_batch(cfg, 16, seed=s) for s in (1, 2, 3)]
+  monkeypatch.setattr(ekf_lanes, "_lanes_call", _fake_lanes_call(seen))
+  members = [_raw_batch(cfg, 16, seed=s) for s in (1, 2, 3)]
   stacked = [jnp.stack(x) for x in zip(*members)]
   stacked[0] = ekf_lib.pack_p(stacked[0])
-  out = jax.vmap(lambda *a: ekf_lanes.cov_tick(spec, resets, *a))(*stacked)
+  fmh = float(cfg.flow_min_height)
+  out = jax.vmap(lambda *a: ekf_lanes.prep_tick(spec, resets, *a, flow_min_height=fmh))(*stacked)
   assert seen[-1] == (48, ekf_lib.N_PACKED)    # (custom_vmap first traces the unbatched call: [16, 121])
   for m, args in enumerate(members):
-    _check(ekf_lanes.cov_tick_xla(spec, resets, *args), (ekf_lib.as_square(out[0][m]),) + tuple(x[m] for x in out[1:]))
+    _check(_prep_xla(cfg, (), args)[:4], (ekf_lib.as_square(out[0][m]),) + tuple(x[m] for x in out[1:4]))
 
 
 def test_aux_block_places_inputs_at_the_layout_offsets():
-  """pack_aux: each input in its `Layout` row of the vehicle-minor block the kernel reads."""
+  """pack_prep: each input in its `PrepLayout` row of the vehicle-minor block the kernel reads."""
   cfg = _cfg("drone")
-  P, A, B, H, innov, enable, due = _batch(cfg, 7, seed=3)
-  spec = ekf_lib._cov_spec(cfg, DT, ())
-  lay = ekf_lanes.Layout(spec)
-  aux = np.asarray(ekf_lanes.pack_aux(spec, A, B, H, innov, enable, due))
-  assert aux.shape == (lay.n_aux, 7)
-  np.testing.assert_array_equal(aux[lay.B:lay.B + 9].T, np.asarray(B).reshape(7, 9))
-  i, c = spec.h_entries()[3]
-  np.testing.assert_array_equal(aux[lay.H + 3], np.asarray(H)[:, i, c])
-  np.testing.assert_array_equal(aux[lay.en:lay.en + 13].T, np.asarray(enable, np.float32))
-  np.testing.assert_array_equal(aux[lay.due:lay.due + 3].T, np.asarray(due, np.float32))
+  args = _raw_batch(cfg, 7, seed=3)
+  lay = ekf_lanes.PrepLayout()
+  aux = np.asarray(ekf_lanes.pack_prep(*args[1:]))
+  assert aux.shape == (lay.n_in, 7)
+  np.testing.assert_array_equal(aux[lay.inp["vel"]:lay.inp["vel"] + 3].T, np.asarray(args[2]))
+  np.testing.assert_array_equal(aux[lay.inp["z"]:lay.inp["z"] + 13].T, np.asarray(args[8]))
+  np.testing.assert_array_equal(aux[lay.inp["en"]:lay.inp["en"] + 13].T, np.asarray(args[9], np.float32))
+  np.testing.assert_array_equal(aux[lay.inp["due"]:lay.inp["due"] + 3].T, np.asarray(args[10], np.float32))
 
 
 @pytest.mark.gpu
@@ -179,48 +204,39 @@ def test_aux_block_places_inputs_at_the_layout_offsets():
 def test_kernel_on_gpu_equals_xla_tick(stale):
   """The compiled kernel (300 vehicles: 3 programs, the last one part padding) against the reference."""
   cfg = _cfg("drone")
-  args = _batch(cfg, 300, seed=4)
-  out = ekf_lanes.cov_tick(ekf_lib._cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args)
-  _check(_xla(cfg, stale)(*args), out)
+  args = _raw_batch(cfg, 300, seed=4)
+  out = ekf_lanes.prep_tick(ekf_lanes.cov_spec(cfg, DT, stale), ekf_lanes.resets_of(cfg), *args,
+                            flow_min_height=float(cfg.flow_min_height))
+  ref = _reference(cfg, stale, args)
+  _check(ref[:4], out[:4])
+  for r, o in zip(ref[4:], out[4:]):
+    np.testing.assert_allclose(np.asarray(o), np.asarray(r), rtol=1e-5, atol=1e-5)
 
 
 @pytest.fixture
 def lanes_on_cpu(monkeypatch):
-  """ekf_lanes.cov_tick replaced by the XLA reference for the batch (the kernel itself needs a GPU): what is tested
+  """ekf_lanes.prep_tick replaced by the XLA reference for the batch (the kernel itself needs a GPU): what is tested
   is the routing around it. Returns the list of P shapes it was called with; `calls.cfgs` are the filters'
   EKFConfigs it may be called for (the one whose spec and resets match the call's is used)."""
-  calls = []
-
-  def fake(spec, resets, P, A, B, H, innov, enable, due, stage="full"):
-    calls.append(P.shape)
-    stale = () if spec.used[0] else ("gps",)
-    cfg = next(c for c in calls.cfgs
-               if ekf_lib._cov_spec(c, spec.dt, stale) == spec and ekf_lanes.resets_of(c) == resets)
-    noise, gate = ekf_lib._noise_and_gates(cfg)
-    return jax.vmap(lambda *x: ekf_lib._cov_tick(cfg, *x[:3], spec.dt, *x[3:5], jnp.asarray(noise) ** 2,
-                                                 jnp.asarray(gate), *x[5:], stale, unrolled=True))(
-        P, A, B, H, innov, enable, due)      # P packed in, packed out (`_cov_tick` keeps P's layout)
-
   def fake_prep(spec, resets, P, *args, flow_min_height):
     calls.append(P.shape)
     stale = () if spec.used[0] else ("gps",)
     cfg = next(c for c in calls.cfgs
-               if ekf_lib._cov_spec(c, spec.dt, stale) == spec and ekf_lanes.resets_of(c) == resets)
-    return jax.vmap(lambda *x: ekf_lib._tick_prep_xla(cfg, spec.dt, stale, *x))(P, *args)
+               if ekf_lanes.cov_spec(c, spec.dt, stale) == spec and ekf_lanes.resets_of(c) == resets)
+    return jax.vmap(lambda *x: ekf_lanes.reference_tick(cfg, spec.dt, stale, *x))(P, *args)
 
   calls = type("Calls", (list,), {})()
   calls.cfgs = [_cfg("drone")]
-  monkeypatch.setattr(ekf_lanes, "cov_tick", fake)
   monkeypatch.setattr(ekf_lanes, "prep_tick", fake_prep)
   return calls
 
 
 def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
-  """A drone env with fused_ekf="lanes" (the kernel stood in for on the CPU) keeps P packed [121] from reset on,
+  """A drone env with the lanes kernel (stood in for on the CPU) keeps P packed [121] from reset on,
   hands the kernel the whole vmapped batch, and steps as the XLA env does: 6 steps of 3 vehicles."""
   import envs
   ref_env, env = envs.make("drone"), envs.make("drone")
-  env._fused_ekf = env._fused_shadow = "lanes"     # (envs.make(fused_ekf="lanes") would need a Hopper GPU)
+  env._ekf_kernel = env._shadow_kernel = "lanes"     # (envs.make(ekf_kernel="lanes") would need a Hopper GPU)
   (_, ref), (_, out) = _rollouts(ref_env, env, 6)
   assert lanes_on_cpu and all(shape == (3, ekf_lib.N_PACKED) for shape in lanes_on_cpu)
   assert out.info["sim"]["ekf"].P.shape == (6, 3, ekf_lib.N_PACKED)
@@ -236,7 +252,7 @@ def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
   import envs
   kw = dict(control_mode="reactive", detector="residual", reconstruction=True)
   ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
-  env._fused_ekf = env._fused_shadow = "lanes"
+  env._ekf_kernel = env._shadow_kernel = "lanes"
   lanes_on_cpu.cfgs.append(env.recon_cfg.ekf_cfg())
   (_, ref), (s0, out) = _rollouts(ref_env, env, 8)
   sim = s0.info["sim"]
@@ -249,44 +265,46 @@ def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
                                atol=1e-6)
 
 
-def test_fused_ekf_names_a_kernel():
-  from envs.base import ekf_kernel_kind
-  assert [ekf_kernel_kind(v) for v in (False, None, "", True, "triton", "lanes")] == ["", "", "", "triton",
-                                                                                       "triton", "lanes"]
-  with pytest.raises(ValueError, match="fused_ekf must be false, true or one of triton, lanes; got 'cuda'"):
-    ekf_kernel_kind("cuda")
+def test_resolve_ekf_kernel():
+  """The one place the kernel is chosen: "xla" stays, "auto" is XLA on the CPU, an unknown name is a one-line error;
+  ekf_lanes.ekf_step takes only a resolved kernel."""
+  assert ekf_lanes.resolve_ekf_kernel("xla") == "xla" and ekf_lanes.resolve_ekf_kernel("auto") == "xla"
+  for bad in ("cuda", True, False, "triton"):
+    with pytest.raises(ValueError, match="ekf_kernel must be one of auto, xla, lanes; got"):
+      ekf_lanes.resolve_ekf_kernel(bad)
+  with pytest.raises(ValueError, match="kernel must be 'xla' or 'lanes'"):
+    ekf_lanes.ekf_step(_cfg("drone"), None, None, DT, kernel="auto")
 
 
-def test_train_defaults_to_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
-  """train.py's GPU defaults pick fused_ekf="lanes" on a Hopper or newer GPU (faked here) with jax >= 0.11, XLA on
-  older GPUs, with jax 0.10 and on the CPU; --fused-ekf xla turns the kernel off."""
+def test_auto_picks_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
+  """"auto" is the lanes kernel on a Hopper or newer GPU (faked here) with jax >= 0.11, XLA on older GPUs, with jax
+  0.10 and on the CPU; train.py's default is "auto", --ekf-kernel xla turns the kernel off."""
   import train as train_cli
-  from specguard_jax.ppo import runner
 
   class Dev:
     device_kind, compute_capability = "NVIDIA H200", "9.0"
 
-  assert runner.default_sizes("gpu")["fused_ekf"] is False          # this CPU machine
-  assert "fused_ekf" not in runner.default_sizes("cpu")
   monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
   monkeypatch.setattr(jax, "devices", lambda *a: [Dev()])
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
-  assert runner.default_sizes("gpu")["fused_ekf"] == "lanes"
+  assert ekf_lanes.resolve_ekf_kernel("auto") == "lanes"
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 10))    # lowered there, never run on a GPU: opt-in
-  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  assert ekf_lanes.resolve_ekf_kernel("auto") == "xla" and ekf_lanes.resolve_ekf_kernel("lanes") == "lanes"
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
   Dev.compute_capability = "8.0"
-  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  assert ekf_lanes.resolve_ekf_kernel("auto") == "xla"
   monkeypatch.undo()
-  assert train_cli.build_config(train_cli.parse_args(["--fused-ekf", "xla"])).fused_ekf is False
-  assert train_cli.build_config(train_cli.parse_args([])).fused_ekf is False          # the CPU's default
+  assert train_cli.build_config(train_cli.parse_args(["--ekf-kernel", "xla"])).ekf_kernel == "xla"
+  assert train_cli.build_config(train_cli.parse_args([])).ekf_kernel == "auto"
 
 
 def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
   """A clear one-line error before any compile: no GPU, or a GPU older than Hopper (faked here on the CPU)."""
-  from envs.base import check_ekf_kernel
-  with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
-    check_ekf_kernel("lanes")
+  import envs
+  with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
+    ekf_lanes.resolve_ekf_kernel("lanes")
+  with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
+    envs.make("drone", ekf_kernel="lanes")
 
   class Ampere:
     device_kind, compute_capability = "NVIDIA A100-SXM4-80GB", "8.0"
@@ -296,22 +314,34 @@ def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
 
   monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
   monkeypatch.setattr(jax, "devices", lambda *a: [Ampere()])
-  with pytest.raises(ValueError, match=r"'lanes' needs an NVIDIA Hopper GPU .* is 8.0: use fused_ekf='triton'"):
-    check_ekf_kernel("lanes")
-  assert check_ekf_kernel("triton") == "triton"
+  with pytest.raises(ValueError, match=r"'lanes' needs an NVIDIA Hopper GPU .* is 8.0: use ekf_kernel='xla'"):
+    ekf_lanes.resolve_ekf_kernel("lanes")
   monkeypatch.setattr(jax, "devices", lambda *a: [Hopper()])
-  assert check_ekf_kernel(True) == "triton" and check_ekf_kernel("lanes") == "lanes"
+  assert ekf_lanes.resolve_ekf_kernel("lanes") == "lanes"
 
 
 def test_a_run_trained_with_the_kernel_evaluates_on_the_cpu(tmp_path):
-  """A GPU run's config.json with fused_ekf="lanes" (train.py's default on Hopper GPUs) loads for evaluation on a
-  machine without the kernel (the choice is dropped: evaluation builds XLA envs); resuming it here is a one-line
+  """A GPU run's config.json with ekf_kernel="lanes" (what "auto" resolves to on Hopper GPUs) loads for evaluation on
+  a machine without the kernel (the choice is dropped: evaluation builds XLA envs); resuming it here is a one-line
   error naming the kernel (its checkpointed env state holds P in the kernel's packed layout)."""
   import json
   from specguard_jax import controllers
   from specguard_jax.ppo import config, runner
-  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig(fused_ekf="lanes").to_dict()))
+  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig(ekf_kernel="lanes").to_dict()))
   cfg = controllers.load_run_config(str(tmp_path))
-  assert cfg.fused_ekf is False and cfg.vehicle == "drone"
-  with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
+  assert cfg.ekf_kernel == "xla" and cfg.vehicle == "drone"
+  with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
     runner.load_run_config(str(tmp_path))
+
+
+def test_an_older_runs_fused_ekf_loads_as_ekf_kernel():
+  """config.json of runs from before ekf_kernel hold fused_ekf: False / "xla" -> "xla", "lanes" -> "lanes",
+  True / "triton" (the removed Triton kernel) -> "auto"; anything else is a one-line error naming the key."""
+  from specguard_jax.ppo import config
+  d = config.TrainConfig().to_dict()
+  del d["ekf_kernel"]
+  for old, new in ((False, "xla"), ("xla", "xla"), ("lanes", "lanes"), (True, "auto"), ("triton", "auto")):
+    assert config.from_dict(dict(d, fused_ekf=old)) == config.TrainConfig(ekf_kernel=new)
+  for bad in (1, "cuda", None):
+    with pytest.raises(ValueError, match="config key 'fused_ekf' must be false, true"):
+      config.from_dict(dict(d, fused_ekf=bad))

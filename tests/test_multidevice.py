@@ -282,9 +282,9 @@ def test_two_processes_with_jax_distributed_train_like_one(runs):
   assert json.loads((mh / "run" / "summary.json").read_text())["processes"] == 2
 
 
-# The env step with the fused EKF kernel, split over 2 devices by shard_map (iteration.group_step), against the plain
-# vmap on one device. The CPU has no Triton, so the kernel runs through Pallas' interpreter (the same kernel body);
-# what this checks is the per-device split around it and the padded layout of P on every device.
+# The env step with the lanes EKF kernel, split over 2 devices by shard_map (iteration.group_step), against the plain
+# vmap on one device. The kernel needs a Hopper GPU, so its call is stood in for by its plain-JAX body (the same
+# arithmetic); what this checks is the batch each device hands the kernel and the packed layout of P on every device.
 KERNEL = textwrap.dedent("""
   import json
   import jax, jax.numpy as jnp, numpy as np
@@ -292,10 +292,23 @@ KERNEL = textwrap.dedent("""
   import envs
   from brax.envs.wrappers.training import VmapWrapper
   from envs.wrappers import AutoReset
+  from specguard_jax import ekf as ekf_lib, ekf_lanes
   from specguard_jax.ppo import distributed, iteration
   assert len(jax.devices()) == 2, jax.devices()
   env = envs.make("drone", control_mode="override", worlds=("suburban_residential",))
-  env._fused_ekf = "interpret"
+  env._ekf_kernel = "lanes"
+  seen = []
+
+  def fake_lanes_call(P, aux, n_rows, n_out, body, in_place):   # the kernel's body on [B] vectors, no TMA
+    seen.append(list(P.shape))
+    mem, p_out = dict(enumerate(aux)), dict(enumerate(P.T))
+    def p_store(i, j, v):
+      p_out[ekf_lib.TRI_INDEX[(i, j)]] = v
+    body(lambda i, j: P[:, ekf_lib.TRI_INDEX[(i, j)]], p_store, mem.__getitem__, mem.__setitem__)
+    return (jnp.stack([p_out[k] for k in range(ekf_lib.N_PACKED)], axis=1),
+            jnp.stack([jnp.broadcast_to(mem[k], (P.shape[0],)) for k in range(n_out)]))
+
+  ekf_lanes._lanes_call = fake_lanes_call
   batched = AutoReset(VmapWrapper(env), refresh_in_step=False)
   G, Bg = 2, 3
   state0 = jax.jit(jax.vmap(batched.reset))(jax.random.split(jax.random.PRNGKey(0), G * Bg).reshape(G, Bg, -1))
@@ -304,13 +317,15 @@ KERNEL = textwrap.dedent("""
   distributed.use_gspmd_for_shard_map(mesh)   # as iteration.make_phase does with the kernel on several devices
   roll = lambda step: jax.jit(lambda s: jax.lax.scan(lambda s, _: (step(s, act), None), s, None, length=3)[0])
   one = roll(iteration.group_step(batched, None))(state0)
+  batch_one, seen[:] = seen[-1], []
   sharded = iteration.group_step(batched, mesh, per_device=True)
   s2 = jax.device_put(state0, NamedSharding(mesh, PartitionSpec(distributed.AXIS)))
   two = roll(sharded)(s2)
+  batch_two = seen[-1]
   P1, P2 = one.info["sim"]["ekf"].P, two.info["sim"]["ekf"].P
   jaxpr = str(jax.make_jaxpr(sharded)(state0, act))
   plain = str(jax.make_jaxpr(iteration.group_step(batched, mesh))(state0, act))   # not per_device: SPMD's vmap
-  res = {"kernel_in_step": "pallas_call" in jaxpr, "shard_map": "shard_map" in jaxpr,
+  res = {"kernel_batch": [batch_one, batch_two], "shard_map": "shard_map" in jaxpr,
          "plain_shard_map": "shard_map" in plain, "shardy": bool(getattr(jax.config, "jax_use_shardy_partitioner", 0)),
          "P_shape": list(P2.shape), "obs_shards": [list(x.data.shape) for x in two.obs.addressable_shards],
          "max_obs_diff": float(jnp.max(jnp.abs(one.obs - two.obs))), "max_P_diff": float(jnp.max(jnp.abs(P1 - P2))),
@@ -319,12 +334,13 @@ KERNEL = textwrap.dedent("""
 """)
 
 
-def test_fused_ekf_kernel_steps_the_envs_per_device():
+def test_lanes_ekf_kernel_steps_the_envs_per_device():
   r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], _env(2)), timeout=900)[0])
-  assert r["kernel_in_step"] and r["shard_map"]       # the step calls the kernel, inside a per-device split
-  assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashes XLA on 2 GPUs)
+  assert r["kernel_batch"] == [[6, 121], [3, 121]]     # one device: all 6 envs in one call; split: 3 per device
+  assert r["shard_map"]                                # the step calls the kernel inside a per-device split
+  assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashes XLA on several GPUs)
   assert not r["shardy"]                               # the kernel's shard_map compiled by GSPMD, as on the GPUs
-  assert r["P_shape"] == [2, 3, 16, 16]                # the kernel's padded layout of P, kept in the env state
+  assert r["P_shape"] == [2, 3, 121]                   # the kernel's packed layout of P, kept in the env state
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
   assert r["moved"] > 1e-3
   assert r["max_obs_diff"] < 1e-5 and r["max_P_diff"] < 1e-6, r
@@ -332,7 +348,7 @@ def test_fused_ekf_kernel_steps_the_envs_per_device():
 
 # On a host with 2 GPUs: the three training programs that a shard_map had made XLA segfault at compile time there
 # (jax 0.11.2) compile and run: a plain run and a 2-member sweep without the kernel, and a
-# run with the fused EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
+# run with the lanes EKF kernel. Each in its own process (a segfault must fail this test, not end the session).
 @pytest.mark.gpu
 def test_two_gpus_compile_and_train(tmp_path):
   import jax
@@ -343,7 +359,7 @@ def test_two_gpus_compile_and_train(tmp_path):
           "--compile-cache", "off"]
   runs = {"plain": ["--out", str(tmp_path / "plain")],
           "sweep": ["--sweep", "seed=0,1", "--out", str(tmp_path / "sweep")],
-          "fused": ["--fused-ekf", "--out", str(tmp_path / "fused")]}
+          "fused": ["--ekf-kernel", "lanes", "--out", str(tmp_path / "fused")]}
   env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false",
              PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
   procs = _start([base + extra for extra in runs.values()], env)

@@ -321,16 +321,16 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
   for d, msg in (({"unroll_ticks": "yes"}, "'unroll_ticks' must be bool, got 'yes'"),
                  ({"num_envs": 2.5}, "'num_envs' must be int"), ({"seed": True}, "'seed' must be int"),
                  ({"vehicle": 3}, "'vehicle' must be str"), ({"sg": {"lr": "fast"}}, "'sg.lr' must be float"),
-                 ({"aa": 1}, "'aa' must be an object"), ({"fused_ekf": 1}, "'fused_ekf' must be bool or str")):
+                 ({"aa": 1}, "'aa' must be an object"), ({"fused_ekf": 1}, "'fused_ekf' must be false, true")):
     with pytest.raises(ValueError, match=msg):
       config.from_dict(d)
   cfg = config.from_dict({"phase1_steps": 1e8, "sg": {"lr": 1}, "fused_ekf": "lanes", "worlds": ["urban_park"]})
   assert cfg.phase1_steps == 100_000_000 and isinstance(cfg.phase1_steps, int) and cfg.sg.lr == 1.0
-  assert cfg.fused_ekf == "lanes" and cfg.worlds == ("urban_park",)
+  assert cfg.ekf_kernel == "lanes" and cfg.worlds == ("urban_park",)   # an older run's fused_ekf
   assert config.from_dict(config.TrainConfig().to_dict()) == config.TrainConfig()   # a run dir's config.json
   if jax.default_backend() != "gpu":
-    with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
-      tiny(fused_ekf=True)
+    with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
+      tiny(ekf_kernel="lanes")
   bad = tmp_path / "c.json"
   bad.write_text("{not json")
   assert train_cli.main(["--config", str(bad), "--out", str(tmp_path / "r")]) == 2

@@ -37,6 +37,7 @@ from flax import struct
 
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import ekf as ekf_lib
+from specguard_jax import ekf_lanes
 from specguard_jax import math3d
 from specguard_jax.detection.detector import CHANNEL_SENSOR
 from specguard_jax.estimation import checkpointer as ck
@@ -326,12 +327,12 @@ def recon_update(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf
 
 
 def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls,
-               compromised_mask, alarm, dt, anchor=None, gps_due=None, fused: bool | str = False,
+               compromised_mask, alarm, dt, anchor=None, gps_due=None, kernel: str = "xla",
                records: bool = True):
   """One autopilot tick of dt (s).
 
-  fused: the shadow filter's covariance work as the fused GPU kernel under vmap (ekf.ekf_step's `fused`; dt a Python
-  float): the same filter to float32 rounding. records: False leaves the shadow filter's per-channel records as they
+  kernel: the shadow filter's tick, "xla" or "lanes" (ekf_lanes.ekf_step's, resolved: ekf_lanes.resolve_ekf_kernel;
+  "lanes" under vmap, dt a Python float): the same filter to float32 rounding. records: False leaves the shadow filter's per-channel records as they
   were (ekf.ekf_step's `records`; an env whose detector does not read them, EnvConfig.ekf_records).
 
   gps_due: optional bool, the same for every vehicle (a Python bool, or [] unbatched under vmap): False on a tick where
@@ -430,8 +431,8 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   gb, ab = (np.isin(np.arange(ekf_lib.N_ERR), _GBIAS_IDX), np.isin(np.arange(ekf_lib.N_ERR), _ABIAS_IDX))
   q_diag = jnp.where(gb, q, jnp.where(ab, qa, 0.0))
   shadow = shadow.replace(P=ekf_lib.add_to_diag(shadow.P, q_diag))   # P in any layout, elementwise (no scatter)
-  shadow_step = lambda stale: ekf_lib.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, fused=fused,
-                                                    records=records)
+  shadow_step = lambda stale: ekf_lanes.ekf_step(cfg.ekf_cfg(), shadow, rd, dt, stale=stale, kernel=kernel,
+                                                 records=records)
   with jax.named_scope("shadow_ekf"):
     shadow = ekf_lib.on_gps_schedule(shadow_step, gps_due)
   # the model rate follows the shadow filter's corrected rate (gyro-bias state absorbs model error)

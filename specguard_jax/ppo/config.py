@@ -99,9 +99,8 @@ class TrainConfig:
   eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
-  fused_ekf: bool | str = False     # envs.base.EnvConfig.fused_ekf: the EKF's covariance work as one GPU kernel
-                                    # ("lanes", or "triton" / True); train.py: "lanes" on a Hopper or newer GPU
-                                    # (runner.default_sizes)
+  ekf_kernel: str = "auto"          # envs.base.EnvConfig.ekf_kernel: "auto", "xla" or "lanes" (the EKF tick as one
+                                    # GPU kernel); a run keeps the resolved one in its config.json (runner.train)
   unroll_ticks: bool = False        # envs.base.EnvConfig.unroll_ticks: the GPS-free ticks unrolled (quicker steps,
                                     # longer compile)
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
@@ -117,8 +116,8 @@ class TrainConfig:
 
   def validate(self):
     from envs import worlds as worlds_lib
-    from envs.base import check_ekf_kernel
-    check_ekf_kernel(self.fused_ekf)
+    from specguard_jax.ekf_lanes import resolve_ekf_kernel
+    resolve_ekf_kernel(self.ekf_kernel)
     if self.vehicle not in VEHICLES:
       raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
     if self.variant not in VARIANTS:
@@ -174,11 +173,13 @@ class TrainConfig:
 RETIRED_KEYS = {"fused_mlp": (False, "the fused MLP kernel was removed: no faster than XLA in training, "
                                     "see BENCHMARKS.md")}
 """Keys older run directories' config.json may hold: {key: (the only value still accepted, why it went)}."""
+_FUSED_EKF = {False: "xla", "xla": "xla", "lanes": "lanes", True: "auto", "triton": "auto"}
+"""Older run directories' `fused_ekf` (the EKF kernel, since renamed ekf_kernel; the Triton kernel was removed) ->
+ekf_kernel."""
 
 
 # JSON values each annotation of TrainConfig / PPOConfig accepts (an int field also takes an integral float: 1e8).
-_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,), "tuple": (list, tuple),
-               "bool | str": (bool, str)}
+_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,), "tuple": (list, tuple)}
 
 
 def _typed(key: str, v, annotation: str):
@@ -195,10 +196,16 @@ def _typed(key: str, v, annotation: str):
 
 def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
   """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys and values of the wrong type
-  are one-line errors, retired keys (RETIRED_KEYS) are skipped at their old default and refused otherwise."""
+  are one-line errors, retired keys (RETIRED_KEYS) are skipped at their old default and refused otherwise; an older
+  run's `fused_ekf` is read as ekf_kernel (`_FUSED_EKF`)."""
   base = base or TrainConfig()
   fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
   kw = {}
+  if "fused_ekf" in d:
+    v = d["fused_ekf"]
+    if not isinstance(v, (bool, str)) or v not in _FUSED_EKF:
+      raise ValueError(f"config key 'fused_ekf' must be false, true, 'xla', 'lanes' or 'triton', got {v!r}")
+    d = {"ekf_kernel": _FUSED_EKF[v], **{k: x for k, x in d.items() if k != "fused_ekf"}}
   for k, v in d.items():
     if k in RETIRED_KEYS:
       accepted, why = RETIRED_KEYS[k]

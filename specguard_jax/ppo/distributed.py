@@ -71,7 +71,7 @@ def groups_for(num_envs: int, env_groups: int, mesh: Mesh) -> int:
 
 
 def use_gspmd_for_shard_map(mesh: Mesh) -> None:
-  """Call before compiling a training program that runs `jax.shard_map` on `mesh` (the fused EKF kernel's per-device
+  """Call before compiling a training program that runs `jax.shard_map` on `mesh` (the lanes EKF kernel's per-device
   env step or sweep members). With jax 0.11.2 on several GPUs, XLA's Shardy partitioner segfaults at compile time (in
   its `shardy-xla` pass) on our training scan with a shard_map inside it or around it; the GSPMD partitioner compiles
   and runs the same program. So on a mesh of several devices this switches the process to

@@ -29,6 +29,7 @@ import envs as envs_lib
 from envs.wrappers import AutoReset
 from specguard_jax import evaluation
 from specguard_jax.autopilot import navigator as nav_lib
+from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, network_precision
@@ -61,7 +62,7 @@ def trainer_env_options(detector: str = "none") -> dict:
 def make_env(cfg: TrainConfig, phase: int):
   """The unbatched env of a phase (phase 2 wrapped in AttackerEnv), with `trainer_env_options`."""
   common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                fused_ekf=cfg.fused_ekf, unroll_ticks=cfg.unroll_ticks)
+                ekf_kernel=cfg.ekf_kernel, unroll_ticks=cfg.unroll_ticks)
   if phase == 1:
     return envs_lib.make(cfg.vehicle, control_mode="override", **trainer_env_options(), **common)
   env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
@@ -131,7 +132,7 @@ def group_step(batched, mesh=None, per_device: bool = False):
   """The env step of G auto-reset groups: (state [G, B/G, ...], action [G, B/G, n]) -> state.
 
   per_device and a mesh of several devices: the groups axis is split explicitly (shard_map), each device stepping its
-  own groups. The fused EKF kernel (a Pallas call, which has no sharding rule) needs that. Otherwise a plain vmap
+  own groups. The lanes EKF kernel (a Pallas call, which has no sharding rule) needs that. Otherwise a plain vmap
   that XLA's SPMD partitioner splits along the groups' sharding: on several GPUs with jax 0.11.2 the shard_map inside
   the training scan makes XLA's `shardy-xla` pass segfault at compile time, with or
   without the kernel, so it is used only where the kernel needs it."""
@@ -221,8 +222,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   nets = functools.partial(network_precision, cfg.matmul_precision)   # the agents' networks only, not the env
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
-  step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
-  if cfg.fused_ekf and not members:   # group_step's shard_map
+  lanes = resolve_ekf_kernel(cfg.ekf_kernel) == "lanes"   # the env's EKF kernel: a Pallas call
+  step = group_step(batched, None if members else mesh, per_device=lanes)
+  if lanes and not members:   # group_step's shard_map
     distributed.use_gspmd_for_shard_map(mesh)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
@@ -388,11 +390,11 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   if members:
     msh = functools.partial(distributed.constrain, sharding=distributed.data_sharding(mesh))
     init_fn = jax.jit(lambda k, s, a: msh(jax.vmap(init)(k, s, a)))
-    # Members never talk to each other: XLA's SPMD partitioner splits them along the member axis. With the fused EKF
+    # Members never talk to each other: XLA's SPMD partitioner splits them along the member axis. With the lanes EKF
     # kernel (a Pallas call, which has no sharding rule) each device runs its own members explicitly (shard_map).
     spec = jax.sharding.PartitionSpec(distributed.AXIS)
     per_device = run_members
-    if mesh.size > 1 and cfg.fused_ekf:
+    if mesh.size > 1 and lanes:
       distributed.use_gspmd_for_shard_map(mesh)
       per_device = jax.shard_map(run_members, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)
     run_fn = jax.jit(lambda c: msh(per_device(msh(c))), donate_argnums=0)

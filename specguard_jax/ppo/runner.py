@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from specguard_jax import export
+from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
@@ -205,9 +206,11 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   if num_devices is not None:
     cfg = dataclasses.replace(cfg, num_devices=num_devices)
   mesh = distributed.make_mesh(cfg.num_devices)
-  # The env-group count fixes the program (and the checkpoint's shapes): resolve it once and keep it in config.json,
-  # so a resume on another device count (dividing it) continues the same run.
-  cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh))
+  # The env-group count and the EKF kernel fix the program (and the checkpoint's shapes: the kernel's P layout):
+  # resolve them once and keep them in config.json, so a resume on another device count (dividing the groups)
+  # continues the same run, and a resume where the kernel cannot run is a one-line error.
+  cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh),
+                            ekf_kernel=resolve_ekf_kernel(cfg.ekf_kernel))
   if not resume and main:
     with open(os.path.join(run_dir, "config.json"), "w") as f:
       json.dump(cfg.to_dict(), f, indent=1)
@@ -402,18 +405,13 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
 
 
 def default_sizes(backend: str) -> dict:
-  """Env count, step budgets, the networks' compute dtype and the EKF kernel for the backend (GPU: tens of thousands
-  of envs, bfloat16 hidden layers in training, +9 % training throughput at the same held-out quality (BENCHMARKS.md
-  session 17), and on a Hopper or newer GPU with jax >= 0.11 the per-lane EKF kernel (`fused_ekf="lanes"`: the
-  default run 186-210 s on an H200, all held-out settings within target, sessions 36-41); CPU: hundreds of envs, float32,
-  since XLA:CPU has no fast bf16 matmuls, and the XLA EKF)."""
+  """Env count, step budgets and the networks' compute dtype for the backend. GPU: tens of thousands of envs and
+  bfloat16 hidden layers in training (quicker at the same held-out quality, BENCHMARKS.md). CPU: hundreds of envs
+  and float32 (XLA:CPU has no fast bf16 matmuls). The EKF kernel is TrainConfig.ekf_kernel's "auto"
+  (ekf_lanes.resolve_ekf_kernel)."""
   if backend == "gpu":
-    from envs.base import lanes_kernel_supported
-    from specguard_jax import ekf_lanes
-    # by default only where it was run on a GPU: jax >= 0.11 (jax 0.10 lowers it, untried on a GPU: opt-in there)
-    lanes = lanes_kernel_supported() and ekf_lanes.JAX_VERSION >= (0, 11)
     return dict(num_envs=16384, unroll_length=32, phase1_steps=30_000_000, phase2_steps=60_000_000,
-                iters_per_call=5, eval_missions=1000, network_dtype="bfloat16", fused_ekf="lanes" if lanes else False)
+                iters_per_call=5, eval_missions=1000, network_dtype="bfloat16")
   return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
               eval_missions=16)
 
