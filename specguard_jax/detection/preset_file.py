@@ -47,9 +47,9 @@ import time
 
 import numpy as np
 
+from specguard_jax import assets
 from specguard_jax.detection import detector as det
 
-ASSETS = det._ASSETS
 # The trainer's worlds (specguard_jax.ppo.config) first, then the other presets: the preset holds in all of them.
 CAL_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain", "suburban_streets",
               "urban_city_areas", "urban_green_areas", "urban_high_rise", "manufacturing_plant", "open_beach")
@@ -58,7 +58,7 @@ XCHECK_FIELDS = ("dr_h", "vel_h", "hgt_h")   # cross-check alarm thresholds (opt
 
 
 def default_path(vehicle: str) -> str:
-  return os.path.join(ASSETS, f"detector_{vehicle}.json")
+  return assets.asset_path(f"detector_{vehicle}.json")
 
 
 def save_preset(cfg: det.DetectorConfig, path: str, meta: dict | None = None) -> None:

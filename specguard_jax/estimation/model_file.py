@@ -14,20 +14,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax import assets
 from specguard_jax.estimation import dynamics as dyn
 
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
 FIT_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
 
 
 def default_path(vehicle: str) -> str:
-  return os.path.join(ASSETS, f"dynamics_{vehicle}.json")
+  return assets.asset_path(f"dynamics_{vehicle}.json")
 
 
 def save_params(params: dyn.DynParams, path: str, meta: dict | None = None) -> None:
