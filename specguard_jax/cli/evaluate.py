@@ -3,6 +3,7 @@
   python evaluate.py --run runs/default --out runs/default/eval              # main experiments, default controllers
   python evaluate.py --run runs/default --suite paper --out runs/paper_eval  # every experiment our code can run
   python evaluate.py --run DIR --controllers no_protection,specguard_rc --sensors gps,gyro --profiles overt
+  specguard-evaluate ...                                                     # the same, as installed by pip
 
 Every controller (specguard_jax.controllers: no_protection, specguard_rc/pc, delorean, ablations, the prior-work
 baselines of specguard_jax.baselines) flies the same missions (plan, world, attack, sensor-noise seed) in every
@@ -100,9 +101,14 @@ class Progress:
 
 
 def _git_commit() -> str | None:
+  """The commit of the checkout this code runs from; None when installed from a wheel (no .git beside the package:
+  site-packages may itself sit inside some other repository) or when git is missing."""
+  root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))   # <root>/specguard_jax/cli
+  if not os.path.exists(os.path.join(root, ".git")):     # a directory in a clone, a file in a worktree
+    return None
   try:
     return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                          cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip() or None
+                          cwd=root).stdout.strip() or None
   except (OSError, subprocess.SubprocessError):
     return None
 

@@ -1,6 +1,7 @@
 """Train a SpecGuard recovery policy: phase 1 (compliance, no attacks) then phase 2 (adversarial, vs the attack agent).
 
   python train.py                                  # default drone SpecGuard-RC, sized to the backend
+  specguard-train ...                              # the same, as installed by pip
   python train.py --vehicle rover --variant pc --envs 8192 --steps 200000000 --out runs/rover_pc
   python train.py --resume runs/drone_rc           # continue an interrupted run from its last checkpoint
   python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
