@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
-
-with contextlib.redirect_stdout(io.StringIO()):
-  # MJX prints "Failed to import warp" on stdout when its optional Warp backend is absent; keep stdout clean for
-  # the CLIs' --json output.
-  from mujoco import mjx as _mjx  # noqa: F401
+# First: mujoco.mjx without its notices about the absent optional Warp backend (stdout stays clean for the CLIs'
+# --json output).
+from specguard_jax import third_party  # noqa: F401
 
 VEHICLES = ("drone", "rover")
 
