@@ -37,10 +37,12 @@ site = os.path.dirname(os.path.dirname(specguard_jax.__file__))
 assert site.endswith("site-packages") and os.path.dirname(envs.__file__).startswith(site), (specguard_jax.__file__,
                                                                                             envs.__file__)
 assert assets.ASSETS_DIR == os.path.join(os.path.dirname(specguard_jax.__file__), "_assets"), assets.ASSETS_DIR
+shipped = {f"{kind}_{v}.json" for kind in ("detector", "dynamics") for v in envs.VEHICLES} | {"drone.xml", "rover.xml"}
+assert shipped <= set(os.listdir(assets.ASSETS_DIR)), os.listdir(assets.ASSETS_DIR)
 data = os.path.join(os.path.dirname(envs.__file__), "data")
 assert any(f.endswith(".plan") for f in os.listdir(data)), os.listdir(data)
 for vehicle in envs.VEHICLES:
-  env = envs.make(vehicle, detector="residual", reconstruction=True)   # every shipped asset of the vehicle
+  env = envs.make(vehicle)
   state = jax.jit(env.reset)(jax.random.PRNGKey(0))
   state = jax.jit(env.step)(state, jnp.zeros(env.action_size))
   assert np.all(np.isfinite(np.asarray(state.obs))), vehicle
