@@ -7,14 +7,11 @@ episodes under a policy (envs/rollout.py).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 
-with contextlib.redirect_stdout(io.StringIO()):
-  # MJX prints "Failed to import warp" on stdout when its optional Warp backend is absent; keep stdout clean for
-  # the CLIs' --json output.
-  from mujoco import mjx as _mjx  # noqa: F401
+# First: mujoco.mjx without its notices about the absent optional Warp backend (stdout stays clean for the CLIs'
+# --json output).
+from specguard_jax import third_party  # noqa: F401,I001
 
 from envs.base import EnvConfig  # noqa: E402
 from envs.drone import DroneEnv  # noqa: E402

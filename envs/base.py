@@ -18,7 +18,6 @@ mission and world, and it ignores `State.info`, where our episode state lives): 
 from __future__ import annotations
 
 import dataclasses
-import os
 from typing import Any
 
 import jax
@@ -31,6 +30,7 @@ from mujoco import mjx
 
 from envs import missions as missions_lib
 from envs import worlds as worlds_lib
+from specguard_jax import assets
 from specguard_jax import attacks as attacks_lib
 from specguard_jax import detection as detection_lib
 from specguard_jax import ekf as ekf_lib
@@ -46,7 +46,7 @@ from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
 from specguard_jax.types import SensorReadings, TrueState
 
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
+ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
 OBS_SIZE = 24
 CONTROL_MODES = ("autopilot", "override", "reactive")
 DETECTORS = ("none", "residual", "oracle")
@@ -205,7 +205,7 @@ class RAVEnv(Env):
     config = dataclasses.replace(config or EnvConfig(), **overrides)
     config.validate()
     self.config = config
-    self.mj_model = mujoco.MjModel.from_xml_path(os.path.join(ASSETS, self.asset))
+    self.mj_model = mujoco.MjModel.from_xml_path(assets.asset_path(self.asset))
     self.mj_model.opt.timestep = config.tick_dt
     check_physics_options(self.mj_model, self.asset)
     # On this process's own device: put_model's default, jax.devices()[0], is process 0's in a multi-process run, and

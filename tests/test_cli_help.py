@@ -5,7 +5,8 @@ import importlib
 import pytest
 
 
-@pytest.mark.parametrize("module", ["train", "evaluate", "envs.fly", "specguard_jax.calibration.dynamics_fit",
+@pytest.mark.parametrize("module", ["train", "evaluate", "specguard_jax.cli.train", "specguard_jax.cli.evaluate",
+                                    "envs.fly", "specguard_jax.calibration.dynamics_fit",
                                     "specguard_jax.calibration.detector_presets"])
 def test_help_prints_usage_and_exits_0(module, capsys):
   main = importlib.import_module(module).main

@@ -68,7 +68,6 @@ Everything is per vehicle, pure and jittable; vmap over vehicles.
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import jax
 import jax.numpy as jnp
@@ -76,6 +75,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from specguard_jax import assets
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax.attacks import attacks as attacks_lib
@@ -96,7 +96,6 @@ _MAG_CH, _FLOW_CH = ekf_lib.CHANNELS.index("mag"), ekf_lib.CHANNELS.index("flow_
 _IMU0 = len(ekf_lib.CHANNELS)
 N_XCHK = 6   # position_check's xchk entries
 _GROUND_Z_DRONE = 0.12
-_ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
 
 
 def _ekf_gates(e: ekf_lib.EKFConfig):
@@ -197,7 +196,7 @@ class DetectorConfig:
     (the drag-model residual had heavy-tailed false alarms in turns; accel_z from the rotor thrusts is kept).
     calibrated: scale, h, used, k from the shipped preset assets/detector_drone.json (attack-free calibration,
     tools/calibrate_detector.py); False: the uncalibrated defaults (the starting point of `calibrate`)."""
-    af = px4.Airframe.from_mjcf(mujoco.MjModel.from_xml_path(os.path.join(_ASSETS, "drone.xml")))
+    af = px4.Airframe.from_mjcf(mujoco.MjModel.from_xml_path(assets.asset_path("drone.xml")))
     kw = dict(vehicle="drone", mass=float(af.mass), rotor_xy=tuple(tuple(float(v) for v in r) for r in af.rotor_xy),
               yaw_coef=tuple(float(v) for v in af.yaw_coef))
     kw.update(_preset("drone") if calibrated else {})

@@ -20,15 +20,15 @@ import json
 import math
 import os
 
+from specguard_jax import assets
 from specguard_jax.detection.channels import CHANNELS, N_CHANNELS
 
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
 FIELDS = ("scale", "h", "used", "k")
 XCHECK_FIELDS = ("dr_h", "vel_h", "hgt_h")   # cross-check alarm thresholds (optional in a file: defaults otherwise)
 
 
 def default_path(vehicle: str) -> str:
-  return os.path.join(ASSETS, f"detector_{vehicle}.json")
+  return assets.asset_path(f"detector_{vehicle}.json")
 
 
 def save_preset(cfg, path: str, meta: dict | None = None) -> None:

@@ -2,7 +2,7 @@
 
 The env's state reconstruction (EnvConfig.reconstruction) needs fitted DynParams at construction time. Fitting is
 cheap (one ridge solve) but recording the flights costs a compile and some simulation, so the fitted weights are
-shipped as constants in assets/dynamics_<vehicle>.json and regenerated (specguard_jax.calibration.dynamics_fit) with
+shipped as constants in assets/dynamics_<vehicle>.json and regenerated (calibration.dynamics_fit) with
 
   python tools/fit_dynamics.py --vehicle drone --missions 16 --seconds 40
   python tools/fit_dynamics.py --vehicle rover --missions 16 --seconds 40
@@ -13,18 +13,17 @@ shipped as constants in assets/dynamics_<vehicle>.json and regenerated (specguar
 from __future__ import annotations
 
 import json
-import os
 
 import jax.numpy as jnp
 import numpy as np
 
+from specguard_jax import assets
 from specguard_jax.estimation import dynamics as dyn
 
-ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "assets")
 
 
 def default_path(vehicle: str) -> str:
-  return os.path.join(ASSETS, f"dynamics_{vehicle}.json")
+  return assets.asset_path(f"dynamics_{vehicle}.json")
 
 
 def save_params(params: dyn.DynParams, path: str, meta: dict | None = None) -> None:

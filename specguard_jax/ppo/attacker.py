@@ -29,6 +29,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from specguard_jax import third_party  # noqa: F401 - before brax: mujoco.mjx without its Warp notices
 from brax.envs.base import State, Wrapper
 
 from specguard_jax import attacks as attacks_lib

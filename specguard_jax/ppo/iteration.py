@@ -21,6 +21,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from specguard_jax import third_party  # noqa: F401 - before brax: mujoco.mjx without its Warp notices
 from brax.envs.base import State
 from brax.envs.wrappers.training import VmapWrapper
 from flax import struct

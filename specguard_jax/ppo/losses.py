@@ -10,6 +10,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import optax
+from specguard_jax import third_party  # noqa: F401 - before brax: mujoco.mjx without its Warp notices
 from brax.training.acme import running_statistics, specs
 from flax import struct
 from jax.flatten_util import ravel_pytree

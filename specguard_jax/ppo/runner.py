@@ -36,6 +36,7 @@ from specguard_jax.ppo import iteration as it
 from specguard_jax.ppo.config import TrainConfig, from_dict
 
 RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
+COMPILE_NOTE = "(first run takes a while; cached afterwards)"   # the persistent cache: specguard_jax.compile_cache
 
 
 def derived(m: dict) -> dict:
@@ -74,6 +75,11 @@ class _Logger:
       self.tb.close()
 
 
+def _num(v: float, spec: str) -> str:
+  """v formatted by spec (e.g. "5.3f"); "-" at the same width while the metric is undefined (NaN: no episode ended)."""
+  return format(v, spec) if math.isfinite(v) else "-".rjust(int(spec.split(".")[0]))
+
+
 class _Progress:
   """One-line progress: phase, steps, ETA, SPS, SVR, RSR (carriage return on a terminal, a line every 10 s else)."""
 
@@ -94,8 +100,14 @@ class _Progress:
     frac = steps / max(total, 1)
     bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
     line = (f"phase {phase} [{bar}] {steps / 1e6:7.2f}/{total / 1e6:.2f}M steps  ETA {eta_s}  "
-            f"{sps / 1e3:8.1f}k sps  SVR {svr:5.3f}  RSR {rsr:5.3f}  return {ret:8.2f}")
+            f"{sps / 1e3:8.1f}k sps  SVR {_num(svr, '5.3f')}  RSR {_num(rsr, '5.3f')}  return {_num(ret, '8.2f')}")
     print(("\r" + line) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
+
+  def compiling(self, what: str) -> None:
+    """A line before a program compiles (the first call of a phase, the held-out evaluation): the wait that follows
+    is the compile, not a hang."""
+    if self.enabled:
+      print(f"compiling {what} {COMPILE_NOTE}", file=sys.stderr, flush=True)
 
 
 def converged(history, window: int, eps: float) -> bool:
@@ -110,6 +122,8 @@ def converged(history, window: int, eps: float) -> bool:
 
 def _checkpointer(run_dir):
   import orbax.checkpoint as ocp
+  from specguard_jax import third_party
+  third_party.quiet_checkpoint_logging()
   path = os.path.abspath(os.path.join(run_dir, "checkpoints"))
   return ocp.CheckpointManager(path, options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True))
 
@@ -266,6 +280,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         del prev
         ckpt_step = None
         log(f"[train] resumed at the start of phase {number} from {run_dir}")
+      if not compile_ahead or f"phase{number}" in ahead.pending():
+        bar.compiling(f"phase {number}")
       waited = ahead.wait(f"phase{number}")   # a phase compiling ahead (init and run): wait for it
       fresh = phase.init(k_init, sg_state, aa_state)
       if ckpt_step is not None and saved_host is not None:
@@ -357,6 +373,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
       summary["export"] = export_policy(cfg, run_dir, sg_state)
     if cfg.eval_missions > 0:
       te = time.time()
+      if not compile_ahead or "heldout" in ahead.pending():
+        bar.compiling("the held-out evaluation")
       ahead.wait("heldout")
       summary["heldout"] = it.heldout(cfg, sg_state, cfg.eval_missions)
       summary["heldout_wall_s"] = time.time() - te
@@ -468,7 +486,9 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
   sg_state = aa_state = None
   log(f"[train] sweep of {S} members as one program per phase on {mesh.size} device(s)")
   ahead = ahead_lib.CompileAhead()
-  if (jax.default_backend() != "cpu" if compile_ahead is None else compile_ahead):
+  if compile_ahead is None:
+    compile_ahead = jax.default_backend() != "cpu"
+  if compile_ahead:
     for number in phases[1:]:   # each later phase's init and run, on the members' states as they arrive there
       phase = it.make_phase(base, number, mesh, members=S)
       spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=msh)  # noqa: E731
@@ -480,6 +500,8 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
       sg0, aa0, kinit = _member_states(phase, cfgs, number, keys)
       if sg_state is None:
         sg_state, aa_state = sg0, aa0
+      if not compile_ahead or f"phase{number}" in ahead.pending():
+        bar.compiling(f"phase {number}")
       waited = ahead.wait(f"phase{number}")
       carry = phase.init(*put((kinit, sg_state, aa_state)))
       calls = -(-phase.iterations // base.iters_per_call)
@@ -521,6 +543,8 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
       if main and export:
         summ["export"] = export_policy(c, d, sg_s)
       if main and c.eval_missions > 0:
+        if s == 0:   # one program for every member
+          bar.compiling("the held-out evaluation")
         summ["heldout"] = it.heldout(c, sg_s, c.eval_missions)
       if main:
         with open(os.path.join(d, "summary.json"), "w") as f:

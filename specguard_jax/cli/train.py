@@ -1,0 +1,249 @@
+"""Train a SpecGuard recovery policy: phase 1 (compliance, no attacks) then phase 2 (adversarial, vs the attack agent).
+
+  python train.py                                  # default drone SpecGuard-RC, sized to the backend
+  specguard-train ...                              # the same, as installed by pip
+  python train.py --vehicle rover --variant pc --envs 8192 --steps 200000000 --out runs/rover_pc
+  python train.py --resume runs/drone_rc           # continue an interrupted run from its last checkpoint
+  python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
+  python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
+  python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
+  python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
+
+Writes runs/<name>/ (config.json, metrics.jsonl, tb/, checkpoints/, policy.onnx, policy.msgpack, summary.json) and
+prints where they are.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+from specguard_jax.types import SENSOR_NAMES
+
+
+DETERMINISTIC_XLA_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def request_deterministic_gpu_ops(environ=os.environ):
+  """Adds XLA's deterministic-ops flag to environ's XLA_FLAGS (read once, when JAX starts its backend).
+
+  Why: XLA's autotuner picks GPU kernels by timing them as it compiles, so two cold compiles of one run can round
+  differently; this flag makes them agree (cold-compiled runs repeat bit for bit) at a cost in env steps/s
+  (docs/PERFORMANCE.md). Raises ValueError when the backend has already started (the flag would silently do nothing)
+  or when XLA_FLAGS already turns the option off."""
+  flags = environ.get("XLA_FLAGS", "")
+  if "--xla_gpu_deterministic_ops" in flags:
+    if DETERMINISTIC_XLA_FLAG not in flags.split():
+      raise ValueError(f"--deterministic-gpu conflicts with XLA_FLAGS={flags!r}")
+    return
+  from jax._src import xla_bridge
+  if xla_bridge.backends_are_initialized():
+    raise ValueError("--deterministic-gpu must come before JAX starts its backend "
+                     f"(in-process callers: set XLA_FLAGS={DETERMINISTIC_XLA_FLAG} before using JAX)")
+  environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_XLA_FLAG}".strip()
+
+
+def _csv(s):
+  return tuple(x for x in s.split(",") if x)
+
+
+def parse_args(argv=None):
+  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+  ap.add_argument("--vehicle", choices=("drone", "rover"))
+  ap.add_argument("--variant", choices=("rc", "pc"), help="rc: reactive control (default); pc: proactive control")
+  ap.add_argument("--steps", type=int, help="total env steps (split evenly between phase 1 and phase 2)")
+  ap.add_argument("--phase1-steps", type=int)
+  ap.add_argument("--phase2-steps", type=int)
+  ap.add_argument("--envs", type=int, help="parallel envs (default: 16384 on a GPU, 256 on the CPU)")
+  ap.add_argument("--unroll", type=int, help="env steps per env per iteration")
+  ap.add_argument("--iters-per-call", type=int, help="training iterations per compiled call")
+  ap.add_argument("--seed", type=int)
+  ap.add_argument("--out", help="run directory (default runs/<vehicle>_<variant>_s<seed>_<time>)")
+  ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
+  ap.add_argument("--world", dest="worlds", type=_csv, help="comma-separated world presets to train in")
+  ap.add_argument("--reward", choices=("compliance", "binary", "survival"),
+                  help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
+  ap.add_argument("--action", choices=("gaussian", "discrete"), help="continuous velocity setpoint or the paper's 6")
+  ap.add_argument("--no-reconstruction", action="store_true", help="ablation: no state reconstruction in phase 2")
+  ap.add_argument("--detector", choices=("residual", "oracle"))
+  ap.add_argument("--attack-sensors", type=_csv, help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
+  ap.add_argument("--converge-eps", type=float, help="stop phase 2 when both average returns change less than this")
+  ap.add_argument("--eval-missions", type=int, help="held-out missions per setting evaluated after training")
+  ap.add_argument("--config", help="JSON file of TrainConfig fields")
+  ap.add_argument("--sweep", nargs="+", metavar="KEY=V1,V2",
+                  help="train every combination of these config values (e.g. seed=0,1 sg.lr=1e-4,3e-4)")
+  ap.add_argument("--sequential-sweep", action="store_true",
+                  help="run sweep members one after another (default: members differing only in seed / "
+                       "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
+  ap.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"),
+                  help="the EKF tick: lanes (one Mosaic GPU kernel, NVIDIA Hopper or newer), xla, or auto (default: "
+                       "lanes where the GPU and jax support it, else xla)")
+  ap.add_argument("--unroll-ticks", action="store_true", default=None,
+                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps, "
+                       "more compile per phase; for long runs")
+  ap.add_argument("--matmul-precision", choices=("default", "bf16"),
+                  help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
+                       "with f32 accumulation (env, evaluation and ONNX export stay f32)")
+  ap.add_argument("--network-dtype", choices=("float32", "bfloat16"),
+                  help="the agents' networks' compute dtype in training: float32 (default) or bfloat16 (matmuls, "
+                       "bias adds and tanh in bf16; f32 parameters, optimizer and losses; evaluation and ONNX "
+                       "export stay f32)")
+  ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
+  ap.add_argument("--env-groups", type=int,
+                  help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
+                       "result on any device count")
+  ap.add_argument("--coordinator", metavar="ADDR:PORT", help="multi-host: process 0's address (jax.distributed)")
+  ap.add_argument("--num-processes", type=int, help="multi-host: number of processes")
+  ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
+  ap.add_argument("--no-progress", action="store_true")
+  ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+  ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
+                  help="compile phase 2 and the held-out evaluation on background threads while phase 1 compiles "
+                       "and trains (default: on unless the backend is the CPU)")
+  ap.add_argument("--deterministic-gpu", action="store_true",
+                  help=f"XLA's deterministic GPU ops (XLA_FLAGS={DETERMINISTIC_XLA_FLAG}): a cold-compiled GPU run "
+                       "repeats bit for bit (without it only a run reusing the compile cache's programs does), "
+                       "at fewer env steps/s")
+  ap.add_argument("--compile-cache", metavar="DIR|off",
+                  help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
+                       "~/.cache/specguard_jax/xla; off: none)")
+  return ap.parse_args(argv)
+
+
+def build_config(a):
+  import jax
+
+  from specguard_jax.ppo import config as C
+  from specguard_jax.ppo.runner import default_sizes
+  cfg = C.TrainConfig(**default_sizes(jax.default_backend()))
+  if a.config:
+    cfg = C.load_config_file(a.config, cfg)
+  over = {}
+  simple = {"vehicle": a.vehicle, "variant": a.variant, "num_envs": a.envs, "unroll_length": a.unroll,
+            "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
+            "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
+            "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
+            "num_devices": a.devices, "env_groups": a.env_groups,
+            "ekf_kernel": a.ekf_kernel, "unroll_ticks": a.unroll_ticks,
+            "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
+  over.update({k: v for k, v in simple.items() if v is not None})
+  if a.steps is not None:
+    over["phase1_steps"] = a.steps // 2
+    over["phase2_steps"] = a.steps - a.steps // 2
+  if a.no_reconstruction:
+    over["reconstruction"] = False
+  cfg = dataclasses.replace(cfg, **over)
+  if "num_envs" in over and cfg.num_envs < 1024 and jax.default_backend() == "gpu":
+    print(f"[train] note: {cfg.num_envs} envs leave most of the GPU idle", file=sys.stderr)
+  return cfg.validate()
+
+
+def _sweep_members(cfg, items):
+  import itertools
+
+  from specguard_jax.ppo import config as C
+  axes = []
+  for item in items:
+    if "=" not in item:
+      raise ValueError(f"bad --sweep item {item!r}; expected KEY=V1,V2 (e.g. seed=0,1)")
+    k, vals = item.split("=", 1)
+    axes.append([(k, json.loads(v) if v[:1] in "-0123456789[{\"tf" else v) for v in vals.split(",")])
+  members = []
+  for combo in itertools.product(*axes):
+    d = {}
+    for k, v in combo:
+      if "." in k:
+        agent, field = k.split(".", 1)
+        d.setdefault(agent, {})[field] = v
+      else:
+        d[k] = v
+    members.append((dict(combo), C.from_dict(d, cfg).validate()))
+  return members
+
+
+def _sweep(members, out, a):
+  """Members grouped by compiled program (structural keys); each group of several runs as one vmapped program
+  (runner.train_sweep) unless --sequential-sweep. Writes out/sweep.json and out/sweep.md; returns the rows."""
+  from specguard_jax.ppo import distributed, iteration, runner
+  groups = {}
+  for point, mcfg in members:
+    key = iteration.program_config(mcfg) if not a.sequential_sweep else len(groups)
+    groups.setdefault(key, []).append((point, mcfg))
+  rows = []
+  for grp in groups.values():
+    names = ["_".join(f"{k}{v}" for k, v in point.items()).replace("/", "-") for point, _ in grp]
+    if len(grp) > 1:
+      summaries = runner.train_sweep([c for _, c in grp], names, out, progress=not a.no_progress,
+                                     export=not a.no_export, compile_ahead=a.compile_ahead)
+    else:
+      summaries = [runner.train(grp[0][1], os.path.join(out, names[0]), progress=not a.no_progress,
+                                export=not a.no_export, compile_ahead=a.compile_ahead)]
+    for (point, _), s in zip(grp, summaries):
+      fm = s["final_train_metrics"].get("2") or s["final_train_metrics"].get("1", {})
+      rows.append({**point, "svr": fm.get("svr"), "rsr": fm.get("rsr"), "return": fm.get("return"),
+                   "env_steps": s["env_steps"], "train_wall_s": s["train_wall_s"],
+                   "program_members": s.get("sweep_members", 1), "run_dir": s["run_dir"]})
+  if not distributed.is_main():
+    return rows
+  keys = list(rows[0])
+  fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+  table = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+  table += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
+  with open(os.path.join(out, "sweep.json"), "w") as f:
+    json.dump(rows, f, indent=1)
+  with open(os.path.join(out, "sweep.md"), "w") as f:
+    f.write("\n".join(table) + "\n")
+  print("\n".join(table))
+  print(f"[train] sweep of {len(rows)} runs in {len(groups)} program(s): {os.path.abspath(out)}/sweep.md, sweep.json")
+  return rows
+
+
+def main(argv=None):
+  a = parse_args(argv)
+  from specguard_jax import compile_cache
+  from specguard_jax.ppo import distributed   # importing runner starts the backend: join the processes first
+  try:
+    if a.deterministic_gpu:
+      request_deterministic_gpu_ops()
+    distributed.initialize(a.coordinator, a.num_processes, a.process_id)
+    compile_cache.enable(a.compile_cache)
+    from specguard_jax.ppo import runner
+    if a.resume:
+      cfg = runner.load_run_config(a.resume)
+      out = a.resume
+    else:
+      cfg = build_config(a)
+      out = a.out or os.path.join("runs", f"{cfg.vehicle}_{cfg.variant}_s{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
+    if a.sweep:
+      members = _sweep_members(cfg, a.sweep)
+    else:
+      members = None
+  except ValueError as e:
+    print(f"train.py: error: {e}", file=sys.stderr)
+    return 2
+  try:
+    if members:
+      _sweep(members, out, a)
+      return 0
+    s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export,
+                     num_devices=a.devices if a.resume else None, compile_ahead=a.compile_ahead)
+  except ValueError as e:
+    print(f"\ntrain.py: error: {e}", file=sys.stderr)
+    return 2
+  if s.get("interrupted"):
+    return 130
+  if not distributed.is_main():
+    return 0
+  print(f"[train] done: {s['env_steps']:,} env steps in {s['train_wall_s']:.0f} s of training calls")
+  print(f"[train] run directory: {s['run_dir']}")
+  for name in ("policy.onnx", "summary.json", "metrics.jsonl", "checkpoints", "tb"):
+    print(f"  {os.path.join(s['run_dir'], name)}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
