@@ -10,7 +10,7 @@ with contextlib.redirect_stdout(io.StringIO()):
   # the CLIs' --json output.
   from mujoco import mjx as _mjx  # noqa: F401
 
-VEHICLES = ("drone", "rover")
+from specguard_jax.types import VEHICLES  # noqa: E402
 
 
 def make(vehicle: str, world: str = "suburban_residential", **overrides):

@@ -42,14 +42,11 @@ from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import SensorReadings, TrueState
+from specguard_jax.types import CONTROL_MODES, DETECTORS, REWARDS, SensorReadings, TrueState  # noqa: F401
 
 ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
 OBS_SIZE = 24
-CONTROL_MODES = ("autopilot", "override", "reactive")
-DETECTORS = ("none", "residual", "oracle")
 OVERRIDE_FRAMES = ("world", "body")
-REWARDS = ("compliance", "binary", "survival")  # survival: the FTC baseline's (specguard_jax.baselines.ftc)
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 
 

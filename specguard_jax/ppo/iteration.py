@@ -30,7 +30,7 @@ from envs.wrappers import AutoReset
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
-from specguard_jax.ppo.config import PPOConfig, TrainConfig, network_precision
+from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
 
 STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
              "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
@@ -51,21 +51,23 @@ class Carry:
 
 
 def trainer_env_options(detector: str = "none") -> dict:
-  """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"): no NaN
-  fallback (its AutoReset replaces a NaN-terminated env's state, EnvConfig.nan_fallback) and no EKF per-channel
-  records unless the detector reads them (detector 'residual', EnvConfig.ekf_records)."""
+  """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"; the
+  trainer's own come from config.env_config): no NaN fallback (its AutoReset replaces a NaN-terminated env's state,
+  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual',
+  EnvConfig.ekf_records)."""
   return dict(nan_fallback=False, ekf_records=detector == "residual")
 
 
+def _make(vehicle: str, config):
+  """The env of `vehicle` with EnvConfig `config` (every field of it, through envs.make's checks)."""
+  return envs_lib.make(vehicle, **{f.name: getattr(config, f.name) for f in dataclasses.fields(config)})
+
+
 def make_env(cfg: TrainConfig, phase: int):
-  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv), with `trainer_env_options`."""
-  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                fused_ekf=cfg.fused_ekf, unroll_ticks=cfg.unroll_ticks)
+  """The unbatched env of a phase (config.env_config(cfg, phase); phase 2 wrapped in AttackerEnv)."""
+  env = _make(cfg.vehicle, env_config(cfg, phase))
   if phase == 1:
-    return envs_lib.make(cfg.vehicle, control_mode="override", **trainer_env_options(), **common)
-  env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
-                      detector=cfg.detector, detector_delay=cfg.detector_delay,
-                      reconstruction=cfg.reconstruction, **trainer_env_options(cfg.detector), **common)
+    return env
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
@@ -220,8 +222,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   nets = functools.partial(network_precision, cfg.matmul_precision)   # the agents' networks only, not the env
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
-  step = group_step(batched, None if members else mesh, per_device=cfg.fused_ekf)
-  if cfg.fused_ekf and not members:   # group_step's shard_map
+  step = group_step(batched, None if members else mesh, per_device=cfg.env.fused_ekf)
+  if cfg.env.fused_ekf and not members:   # group_step's shard_map
     distributed.use_gspmd_for_shard_map(mesh)
   refresh_pool = jax.vmap(lambda s: batched.refresh_pool(s, cfg.unroll_length))
 
@@ -391,7 +393,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     # kernel (a Pallas call, which has no sharding rule) each device runs its own members explicitly (shard_map).
     spec = jax.sharding.PartitionSpec(distributed.AXIS)
     per_device = run_members
-    if mesh.size > 1 and cfg.fused_ekf:
+    if mesh.size > 1 and cfg.env.fused_ekf:
       distributed.use_gspmd_for_shard_map(mesh)
       per_device = jax.shard_map(run_members, mesh=mesh, in_specs=(spec,), out_specs=spec, check_vma=False)
     run_fn = jax.jit(lambda c: msh(per_device(msh(c))), donate_argnums=0)
@@ -418,15 +420,12 @@ class DeterministicPolicy:
 def eval_env(cfg: TrainConfig):
   """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator). One object
   per distinct env setting, so a second held-out evaluation (e.g. after a resume) reuses the compiled rollout."""
-  return _eval_env(cfg.vehicle, tuple(cfg.worlds), cfg.reward, cfg.residual, cfg.variant, cfg.eval_detector,
-                   cfg.detector_delay, cfg.reconstruction)
+  return _eval_env(cfg.vehicle, env_config(cfg, "eval"))
 
 
 @functools.lru_cache(maxsize=8)
-def _eval_env(vehicle, worlds, reward, residual, variant, detector, detector_delay, reconstruction):
-  return envs_lib.make(vehicle, worlds=worlds, reward=reward, override_frame="body", override_residual=residual,
-                       control_mode="reactive" if variant == "rc" else "override", detector=detector,
-                       detector_delay=detector_delay, reconstruction=reconstruction)
+def _eval_env(vehicle, config):
+  return _make(vehicle, config)
 
 
 def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:

@@ -31,7 +31,7 @@ from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
-from specguard_jax.ppo.config import TrainConfig, from_dict
+from specguard_jax.ppo.config import TRAIN_ENV, TrainConfig, from_dict
 
 RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
 
@@ -404,7 +404,7 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
 def default_sizes(backend: str) -> dict:
   """Env count, step budgets, the networks' compute dtype and the EKF kernel for the backend (GPU: tens of thousands
   of envs, bfloat16 hidden layers in training, +9 % training throughput at the same held-out quality (BENCHMARKS.md
-  session 17), and on a Hopper or newer GPU with jax >= 0.11 the per-lane EKF kernel (`fused_ekf="lanes"`: the
+  session 17), and on a Hopper or newer GPU with jax >= 0.11 the per-lane EKF kernel (`env.fused_ekf="lanes"`: the
   default run 186-210 s on an H200, all held-out settings within target, sessions 36-41); CPU: hundreds of envs, float32,
   since XLA:CPU has no fast bf16 matmuls, and the XLA EKF)."""
   if backend == "gpu":
@@ -413,7 +413,8 @@ def default_sizes(backend: str) -> dict:
     # by default only where it was run on a GPU: jax >= 0.11 (jax 0.10 lowers it, untried on a GPU: opt-in there)
     lanes = lanes_kernel_supported() and ekf_lanes.JAX_VERSION >= (0, 11)
     return dict(num_envs=16384, unroll_length=32, phase1_steps=30_000_000, phase2_steps=60_000_000,
-                iters_per_call=5, eval_missions=1000, network_dtype="bfloat16", fused_ekf="lanes" if lanes else False)
+                iters_per_call=5, eval_missions=1000, network_dtype="bfloat16",
+                env=dataclasses.replace(TRAIN_ENV, fused_ekf="lanes" if lanes else False))
   return dict(num_envs=256, unroll_length=32, phase1_steps=1_000_000, phase2_steps=1_000_000, iters_per_call=4,
               eval_missions=16)
 
