@@ -145,17 +145,22 @@ def parse_args(argv=None):
   return ap.parse_args(argv)
 
 
+def _json_or_str(v: str):
+  """A --set / --sweep value: JSON (1e-4, false, [1, 2], "x"), else the string itself (urban_park)."""
+  try:
+    return json.loads(v)
+  except json.JSONDecodeError:
+    return v
+
+
 def _set_items(items) -> dict:
-  """--set KEY=VALUE items as {key: value}: the value parsed as JSON (1e-4, false, [..]), else kept as a string."""
+  """--set KEY=VALUE items as {key: value} (values: _json_or_str)."""
   out = {}
   for item in items:
     k, sep, v = item.partition("=")
     if not sep or not k:
       raise ValueError(f"bad --set item {item!r}; expected KEY=VALUE (e.g. env.clearance=6)")
-    try:
-      out[k] = json.loads(v)
-    except json.JSONDecodeError:
-      out[k] = v
+    out[k] = _json_or_str(v)
   return out
 
 
@@ -188,7 +193,7 @@ def _sweep_members(cfg, items):
     if "=" not in item:
       raise ValueError(f"bad --sweep item {item!r}; expected KEY=V1,V2 (e.g. seed=0,1)")
     k, vals = item.split("=", 1)
-    axes.append([(k, json.loads(v) if v[:1] in "-0123456789[{\"tf" else v) for v in vals.split(",")])
+    axes.append([(k, _json_or_str(v)) for v in vals.split(",")])
   members = []
   for combo in itertools.product(*axes):
     members.append((dict(combo), C.from_dict(C.nested(dict(combo)), cfg).validate()))

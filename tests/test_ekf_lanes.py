@@ -266,20 +266,20 @@ def test_train_defaults_to_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
   class Dev:
     device_kind, compute_capability = "NVIDIA H200", "9.0"
 
-  assert runner.default_sizes("gpu")["fused_ekf"] is False          # this CPU machine
-  assert "fused_ekf" not in runner.default_sizes("cpu")
+  assert runner.default_sizes("gpu")["env"].fused_ekf is False          # this CPU machine
+  assert "env" not in runner.default_sizes("cpu")
   monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
   monkeypatch.setattr(jax, "devices", lambda *a: [Dev()])
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
-  assert runner.default_sizes("gpu")["fused_ekf"] == "lanes"
+  assert runner.default_sizes("gpu")["env"].fused_ekf == "lanes"
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 10))    # lowered there, never run on a GPU: opt-in
-  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  assert runner.default_sizes("gpu")["env"].fused_ekf is False
   monkeypatch.setattr(ekf_lanes, "JAX_VERSION", (0, 11))
   Dev.compute_capability = "8.0"
-  assert runner.default_sizes("gpu")["fused_ekf"] is False
+  assert runner.default_sizes("gpu")["env"].fused_ekf is False
   monkeypatch.undo()
-  assert train_cli.build_config(train_cli.parse_args(["--fused-ekf", "xla"])).fused_ekf is False
-  assert train_cli.build_config(train_cli.parse_args([])).fused_ekf is False          # the CPU's default
+  assert train_cli.build_config(train_cli.parse_args(["--fused-ekf", "xla"])).env.fused_ekf is False
+  assert train_cli.build_config(train_cli.parse_args([])).env.fused_ekf is False          # the CPU's default
 
 
 def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
@@ -310,8 +310,8 @@ def test_a_run_trained_with_the_kernel_evaluates_on_the_cpu(tmp_path):
   import json
   from specguard_jax import controllers
   from specguard_jax.ppo import config, runner
-  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig(fused_ekf="lanes").to_dict()))
+  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig().with_env(fused_ekf="lanes").to_dict()))
   cfg = controllers.load_run_config(str(tmp_path))
-  assert cfg.fused_ekf is False and cfg.vehicle == "drone"
+  assert cfg.env.fused_ekf is False and cfg.vehicle == "drone"
   with pytest.raises(ValueError, match="fused_ekf needs a GPU"):
     runner.load_run_config(str(tmp_path))
