@@ -71,8 +71,8 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, fused_ekf: bool) -> 
   from specguard_jax.ppo import distributed, losses
   from specguard_jax.ppo import iteration as it
 
-  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, fused_ekf=fused_ekf, phase1_steps=10**7,
-                               phase2_steps=10**7, num_devices=1).validate()
+  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, phase1_steps=10**7, phase2_steps=10**7,
+                               num_devices=1).with_env(fused_ekf=fused_ekf).validate()
   t = time.perf_counter()
   phase = it.make_phase(cfg, number, distributed.make_mesh(1))
   env = phase.env if number == 1 else phase.env.env

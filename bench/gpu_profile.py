@@ -287,8 +287,8 @@ def main(argv=None):
     base = runner.default_sizes("gpu")
     cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
                              iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
-                             phase2_steps=base["phase2_steps"], fused_ekf=a.fused_ekf, num_devices=1,
-                             matmul_precision=a.matmul_precision, network_dtype=a.network_dtype).validate()
+                             phase2_steps=base["phase2_steps"], num_devices=1, matmul_precision=a.matmul_precision,
+                             network_dtype=a.network_dtype).with_env(fused_ekf=a.fused_ekf).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
     sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
