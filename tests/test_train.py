@@ -322,7 +322,7 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
   for d, msg in (({"unroll_ticks": "yes"}, "'env.unroll_ticks' must be bool, got 'yes'"),
                  ({"env": {"unroll_ticks": "yes"}}, "'env.unroll_ticks' must be bool, got 'yes'"),
                  ({"env": {"clearance": "far"}}, "'env.clearance' must be float, got 'far'"),
-                 ({"env": {"bogus": 1}}, "unknown env env key"), ({"env": 3}, "'env' must be an object"),
+                 ({"env": {"bogus": 1}}, "unknown env key"), ({"env": 3}, "'env' must be an object"),
                  ({"env": {"mission": {"a": 1}}}, "'env.mission' is an object a config file cannot set"),
                  ({"detector": "oracle", "env": {"detector": "residual"}}, "given both at the top level and in env"),
                  ({"num_envs": 2.5}, "'num_envs' must be int"), ({"seed": True}, "'seed' must be int"),
@@ -442,7 +442,7 @@ def test_flags_and_set_reach_the_config_through_from_dict(capsys):
   assert cfg.sg.lr == 1e-4 and cfg.activation == "relu"
   cfg = train_cli.build_config(train_cli.parse_args(["--set", "env.ekf_records=false"]))
   assert not config.env_config(cfg, 2).ekf_records and config.env_config(cfg, "eval").ekf_records
-  for argv, msg in ((["--set", "env.bogus=1"], "unknown env env key(s) bogus"),
+  for argv, msg in ((["--set", "env.bogus=1"], "unknown env key(s) bogus"),
                     (["--set", "seed=abc"], "config key 'seed' must be int, got 'abc'"),
                     (["--set", "env.clearance=[1]"], "config key 'env.clearance' must be float"),
                     (["--set", "clearance"], "bad --set item 'clearance'"),

@@ -10,6 +10,7 @@ import jax
 from envs.base import EnvConfig
 from envs.worlds import DEFAULT_WORLDS
 from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
+
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
 NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
 
@@ -47,7 +48,8 @@ class PPOConfig:
 
 TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
                       detector_delay=0.5, reconstruction=True, nan_fallback=False)
-"""TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase)."""
+"""TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
+the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
 
 # EnvConfig fields of the trainer's speed options, which the held-out evaluation's env leaves at EnvConfig's defaults
 # (it is the deployment env: a training speed setting of the same filter and physics does not belong there).
@@ -213,8 +215,8 @@ FLAT_ENV_KEYS = {"worlds": "worlds", "reward": "reward", "residual": "override_r
 """Top-level keys of config files written before the env settings moved into TrainConfig.env: {old key: env field}
 (an old run directory's config.json, a JSON --config or a --sweep key like detector=oracle,residual still load)."""
 
-# Nested dataclass fields of TrainConfig: {key: (class, what an error calls its keys)}.
-_NESTED = {"sg": (PPOConfig, "PPO"), "aa": (PPOConfig, "PPO"), "env": (EnvConfig, "env")}
+# Nested dataclass fields of TrainConfig (PPOConfig, EnvConfig): {key: what an error calls their settings}.
+_NESTED = {"sg": "sg PPO", "aa": "aa PPO", "env": "env"}
 
 # JSON values each annotation of TrainConfig / PPOConfig / EnvConfig accepts (an int field also takes an integral
 # float: 1e8). "Any" fields of EnvConfig (mission, specs, attack, detector_config: objects) take only null.
@@ -238,14 +240,15 @@ def _typed(key: str, v, annotation: str):
   return float(v) if annotation == "float" else v
 
 
-def _replace_typed(obj, d: dict, prefix: str, what: str):
+def _replace_typed(obj, d: dict, prefix: str):
   """obj (a frozen dataclass) with the fields in d replaced, each checked by `_typed` under key prefix.field."""
+  what = _NESTED[prefix]
   if not isinstance(d, dict):
     raise ValueError(f"config key {prefix!r} must be an object of {what} settings, got {d!r}")
   types = {f.name: str(f.type) for f in dataclasses.fields(obj)}
   bad = sorted(set(d) - set(types))
   if bad:
-    raise ValueError(f"unknown {prefix} {what} key(s) {', '.join(bad)}; valid: {', '.join(sorted(types))}")
+    raise ValueError(f"unknown {what} key(s) {', '.join(bad)}; valid: {', '.join(sorted(types))}")
   return dataclasses.replace(obj, **{n: _typed(f"{prefix}.{n}", x, types[n]) for n, x in d.items()})
 
 
@@ -269,7 +272,7 @@ def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
     if k not in fields:
       raise ValueError(f"unknown config key {k!r}; valid: {', '.join(sorted(fields))}")
     if k in _NESTED:
-      v = _replace_typed(getattr(base, k), v, k, _NESTED[k][1])
+      v = _replace_typed(getattr(base, k), v, k)
     else:
       v = _typed(k, v, str(fields[k].type))
     kw[k] = v
@@ -277,7 +280,7 @@ def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
     clash = sorted(k for k in flat_env if k in d.get("env", {}))
     if clash:
       raise ValueError(f"config key(s) {', '.join(clash)} given both at the top level and in env; keep env's")
-    kw["env"] = _replace_typed(kw.get("env", base.env), flat_env, "env", "env")
+    kw["env"] = _replace_typed(kw.get("env", base.env), flat_env, "env")
   return dataclasses.replace(base, **kw)
 
 
