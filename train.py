@@ -16,7 +16,6 @@ prints where they are.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys

@@ -42,7 +42,7 @@ from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import CONTROL_MODES, DETECTORS, REWARDS, SensorReadings, TrueState  # noqa: F401
+from specguard_jax.types import CONTROL_MODES, DETECTORS, REWARDS, SensorReadings, TrueState
 
 ASSETS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
 OBS_SIZE = 24
