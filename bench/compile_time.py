@@ -71,8 +71,8 @@ def trainer_parts(vehicle: str, num_envs: int, number: int, ekf_kernel: str) -> 
   from specguard_jax.ppo import distributed, losses
   from specguard_jax.ppo import iteration as it
 
-  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, ekf_kernel=ekf_kernel, phase1_steps=10**7,
-                               phase2_steps=10**7, num_devices=1).validate()
+  cfg = config_lib.TrainConfig(vehicle=vehicle, num_envs=num_envs, phase1_steps=10**7, phase2_steps=10**7,
+                               num_devices=1).with_env(ekf_kernel=ekf_kernel).validate()
   t = time.perf_counter()
   phase = it.make_phase(cfg, number, distributed.make_mesh(1))
   env = phase.env if number == 1 else phase.env.env

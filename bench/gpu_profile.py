@@ -289,8 +289,8 @@ def main(argv=None):
     base = runner.default_sizes("gpu")
     cfg = config.TrainConfig(vehicle=a.vehicle, num_envs=a.envs, unroll_length=a.unroll,
                              iters_per_call=a.iters_per_call, phase1_steps=base["phase1_steps"],
-                             phase2_steps=base["phase2_steps"], ekf_kernel=a.ekf_kernel, num_devices=1,
-                             matmul_precision=a.matmul_precision, network_dtype=a.network_dtype).validate()
+                             phase2_steps=base["phase2_steps"], num_devices=1, matmul_precision=a.matmul_precision,
+                             network_dtype=a.network_dtype).with_env(ekf_kernel=a.ekf_kernel).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
     sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
@@ -304,7 +304,7 @@ def main(argv=None):
       with open(a.hlo_out, "w") as f:
         f.write(compiled.as_text())
     label = (f"one training call, phase {a.phase}, {a.vehicle}, {a.envs} envs x {a.unroll} steps x "
-             f"{a.iters_per_call} iteration(s), EKF {ekf_lanes.resolve_ekf_kernel(cfg.ekf_kernel)}, {dev}")
+             f"{a.iters_per_call} iteration(s), EKF {ekf_lanes.resolve_ekf_kernel(cfg.env.ekf_kernel)}, {dev}")
     res = profile(compiled, (carry,), label, a.top, runs=2, show=a.show, gaps=a.gaps)
   if a.json:
     json.dump(dict(res, device=dev, args=vars(a), date=time.strftime("%F")), open(a.json, "w"), indent=1)

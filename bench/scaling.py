@@ -38,11 +38,11 @@ def _cfg(a, envs, devices, **kw):
   base = runner.default_sizes("gpu")
   c = config.TrainConfig(vehicle=a.vehicle, num_envs=envs, unroll_length=a.unroll, iters_per_call=a.iters_per_call,
                          phase1_steps=base["phase1_steps"], phase2_steps=base["phase2_steps"], num_devices=devices,
-                         seed=a.seed, env_groups=kw.pop("env_groups", 0), ekf_kernel=a.ekf_kernel,
-                         network_dtype=a.network_dtype, **kw)
+                         seed=a.seed, env_groups=kw.pop("env_groups", 0), network_dtype=a.network_dtype,
+                         **kw).with_env(ekf_kernel=a.ekf_kernel)
   if a.smoke:
     tiny = config.PPOConfig(num_minibatches=2, update_epochs=1)
-    c = dataclasses.replace(c, hidden=(32, 32), sg=tiny, aa=tiny, worlds=("suburban_residential",))
+    c = dataclasses.replace(c, hidden=(32, 32), sg=tiny, aa=tiny).with_env(worlds=("suburban_residential",))
   return c.validate()
 
 

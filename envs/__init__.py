@@ -18,7 +18,7 @@ from envs.drone import DroneEnv  # noqa: E402
 from envs.rollout import fly_batch, record  # noqa: E402,F401
 from envs.rover import RoverEnv  # noqa: E402
 
-VEHICLES = ("drone", "rover")
+from specguard_jax.types import VEHICLES  # noqa: E402
 _ENVS = {"drone": DroneEnv, "rover": RoverEnv}
 
 

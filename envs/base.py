@@ -44,14 +44,11 @@ from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import SensorReadings, TrueState
+from specguard_jax.types import CONTROL_MODES, DETECTORS, REWARDS, SensorReadings, TrueState
 
 ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
 OBS_SIZE = 24
-CONTROL_MODES = ("autopilot", "override", "reactive")
-DETECTORS = ("none", "residual", "oracle")
 OVERRIDE_FRAMES = ("world", "body")
-REWARDS = ("compliance", "binary", "survival")  # survival: the FTC baseline's (specguard_jax.baselines.ftc)
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 
 

@@ -24,11 +24,12 @@ from envs import rollout
 from envs import worlds as worlds_lib
 from envs.plotting import plot_mission
 from specguard_jax import attacks
+from specguard_jax.types import VEHICLES
 
 
 def _parser():
   p = argparse.ArgumentParser(prog="python -m envs.fly", description=__doc__.split("\n\n")[0])
-  p.add_argument("--vehicle", choices=("drone", "rover"), default="drone")
+  p.add_argument("--vehicle", choices=VEHICLES, default="drone")
   p.add_argument("--world", default="suburban_residential", help="world preset name, or 'all'")
   p.add_argument("--missions", type=int, default=16, help="number of missions per world (>= 1)")
   p.add_argument("--batch", type=int, default=0, help="missions per jitted batch (0: all on GPU, 64 on CPU)")

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, mission_timing
+from specguard_jax.types import VEHICLES
 
 EARTH_RADIUS = 6378137.0
 WPL_HEADER = "QGC WPL 110"
@@ -285,8 +286,8 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
 
 
 def _config(vehicle, cfg):
-  if vehicle not in ("drone", "rover"):
-    raise ValueError(f"vehicle must be 'drone' or 'rover', got {vehicle!r}")
+  if vehicle not in VEHICLES:
+    raise ValueError(f"vehicle must be one of {', '.join(VEHICLES)}, got {vehicle!r}")
   cfg = cfg if cfg is not None else (MissionConfig.rover() if vehicle == "rover" else MissionConfig.drone())
   if cfg.vehicle != vehicle:
     raise ValueError(f"cfg is for a {cfg.vehicle}, but vehicle={vehicle!r}")

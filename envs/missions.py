@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from specguard_jax.types import VEHICLES
+
 MAX_WAYPOINTS = 12
 """Waypoint slots per mission (fixed array size)."""
 
@@ -111,8 +113,8 @@ class MissionConfig:
     return cls(**base)
 
   def __post_init__(self):
-    if self.vehicle not in ("drone", "rover"):
-      raise ValueError(f"MissionConfig.vehicle must be 'drone' or 'rover', got {self.vehicle!r}")
+    if self.vehicle not in VEHICLES:
+      raise ValueError(f"MissionConfig.vehicle must be one of {', '.join(VEHICLES)}, got {self.vehicle!r}")
     lo, hi = self.n_waypoints
     if not 1 <= lo <= hi <= MAX_WAYPOINTS:
       raise ValueError(f"n_waypoints {self.n_waypoints} must satisfy 1 <= lo <= hi <= {MAX_WAYPOINTS}")

@@ -209,6 +209,8 @@ PRESETS = {p.name: p for p in (
 )}
 PRESET_NAMES = tuple(PRESETS)
 """The 10 world names; index = World.preset_id."""
+DEFAULT_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
+"""The worlds the trainer trains in by default (TrainConfig.env.worlds) and evaluate.py flies without a run."""
 
 
 # ----------------------------------------------------------------------------------------------------------------

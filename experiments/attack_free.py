@@ -34,7 +34,7 @@ def main(argv=None):
   from envs import worlds as worlds_lib
   from specguard_jax import evaluation as E
   from specguard_jax.ppo.config import TrainConfig
-  worlds = {"train": tuple(TrainConfig().worlds), "all": worlds_lib.PRESET_NAMES}.get(a.worlds)
+  worlds = {"train": tuple(TrainConfig().env.worlds), "all": worlds_lib.PRESET_NAMES}.get(a.worlds)
   worlds = worlds or tuple(w.strip() for w in a.worlds.split(","))
   bad = [w for w in worlds if w not in worlds_lib.PRESETS]
   if bad:

@@ -30,11 +30,10 @@ from typing import Any, Callable
 
 import jax.numpy as jnp
 
+from envs.worlds import DEFAULT_WORLDS  # noqa: F401 (evaluate.py's default worlds)
 from specguard_jax import export
 from specguard_jax.ppo import config as config_lib
 from specguard_jax.ppo.iteration import DeterministicPolicy
-
-DEFAULT_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
 
 
 class NotAvailable(Exception):
@@ -132,18 +131,20 @@ def load_run_config(run_dir: str):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
     with open(path) as f:
-      return dataclasses.replace(config_lib.from_dict(json.load(f)), ekf_kernel="xla").validate()
+      return config_lib.from_dict(json.load(f)).with_env(ekf_kernel="xla").validate()
   except (OSError, ValueError, TypeError) as e:
     raise NotAvailable(f"{path}: {' '.join(str(e).split())}") from None
 
 
 def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
-  """EnvConfig overrides of a run's deployment env (as ppo.iteration.eval_env, without worlds/reward: the
-  evaluation picks the worlds; the reward does not change what is flown)."""
-  rec = cfg.reconstruction if reconstruction is None else reconstruction
-  return (("control_mode", "reactive" if cfg.variant == "rc" else "override"), ("override_frame", "body"),
-          ("override_residual", bool(cfg.residual)), ("detector", cfg.eval_detector),
-          ("detector_delay", float(cfg.detector_delay)), ("reconstruction", bool(rec)))
+  """EnvConfig overrides of a run's deployment env (these fields of ppo.config.env_config(cfg, "eval"), without
+  worlds/reward: the evaluation picks the worlds; the reward does not change what is flown)."""
+  from specguard_jax.ppo import config as config_lib
+  ev = config_lib.env_config(cfg, "eval")
+  rec = ev.reconstruction if reconstruction is None else reconstruction
+  return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
+          ("override_residual", bool(ev.override_residual)), ("detector", ev.detector),
+          ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)))
 
 
 def load_run_policy(run_dir: str):

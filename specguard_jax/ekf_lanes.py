@@ -23,10 +23,10 @@ from flax import struct
 
 from specguard_jax import ekf as ekf_lib
 from specguard_jax.ekf import N_ERR, N_PACKED, TRI, TRI_INDEX, as_square, layout_like, pack_p, p_layout, tri_index
+from specguard_jax.types import EKF_KERNELS
 
 N_ROWS = 13
 LANES = 128     # vehicles per program: one per thread of a warpgroup
-EKF_KERNELS = ("auto", "xla", "lanes")    # EnvConfig.ekf_kernel / TrainConfig.ekf_kernel
 JAX_VERSION = tuple(int(x) for x in jax.__version__.split(".")[:2])
 # P written in place through a jax Ref (jax >= 0.11; jax 0.10's Pallas cannot discharge a Ref into a Mosaic GPU kernel)
 IN_PLACE = JAX_VERSION >= (0, 11)

@@ -64,3 +64,14 @@ class SensorReadings:
 
 # Names of the physical sensors (attack targets, diagnosis labels). Order is part of the API (integer sensor ids).
 SENSOR_NAMES = ("gps", "gyro", "accel", "mag", "baro", "flow")
+
+# Names the envs, the trainer and the CLIs share (defined here, a module without heavy imports, so that the CLIs'
+# argparse choices need not import the simulator): envs.VEHICLES, envs.base.CONTROL_MODES / DETECTORS / REWARDS
+# re-export them.
+VEHICLES = ("drone", "rover")
+EKF_KERNELS = ("auto", "xla", "lanes")                  # EnvConfig.ekf_kernel (ekf_lanes.resolve_ekf_kernel)
+CONTROL_MODES = ("autopilot", "override", "reactive")   # envs.base.EnvConfig.control_mode
+DETECTORS = ("none", "residual", "oracle")              # envs.base.EnvConfig.detector
+REWARDS = ("compliance", "binary", "survival")           # survival: the FTC baseline's (specguard_jax.baselines.ftc)
+VARIANTS = ("rc", "pc")                                  # ppo.config.TrainConfig.variant (RC / PC SpecGuard)
+TRAIN_DETECTORS = tuple(d for d in DETECTORS if d != "none")   # a training run's phase-2 and held-out detectors

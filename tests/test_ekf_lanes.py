@@ -294,8 +294,8 @@ def test_auto_picks_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
   Dev.compute_capability = "8.0"
   assert ekf_lanes.resolve_ekf_kernel("auto") == "xla"
   monkeypatch.undo()
-  assert train_cli.build_config(train_cli.parse_args(["--ekf-kernel", "xla"])).ekf_kernel == "xla"
-  assert train_cli.build_config(train_cli.parse_args([])).ekf_kernel == "auto"
+  assert train_cli.build_config(train_cli.parse_args(["--ekf-kernel", "xla"])).env.ekf_kernel == "xla"
+  assert train_cli.build_config(train_cli.parse_args([])).env.ekf_kernel == "auto"
 
 
 def test_lanes_kernel_needs_a_hopper_gpu(monkeypatch):
@@ -327,9 +327,9 @@ def test_a_run_trained_with_the_kernel_evaluates_on_the_cpu(tmp_path):
   import json
   from specguard_jax import controllers
   from specguard_jax.ppo import config, runner
-  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig(ekf_kernel="lanes").to_dict()))
+  (tmp_path / "config.json").write_text(json.dumps(config.TrainConfig().with_env(ekf_kernel="lanes").to_dict()))
   cfg = controllers.load_run_config(str(tmp_path))
-  assert cfg.ekf_kernel == "xla" and cfg.vehicle == "drone"
+  assert cfg.env.ekf_kernel == "xla" and cfg.vehicle == "drone"
   with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
     runner.load_run_config(str(tmp_path))
 
@@ -339,9 +339,9 @@ def test_an_older_runs_fused_ekf_loads_as_ekf_kernel():
   True / "triton" (the removed Triton kernel) -> "auto"; anything else is a one-line error naming the key."""
   from specguard_jax.ppo import config
   d = config.TrainConfig().to_dict()
-  del d["ekf_kernel"]
+  del d["env"]["ekf_kernel"]
   for old, new in ((False, "xla"), ("xla", "xla"), ("lanes", "lanes"), (True, "auto"), ("triton", "auto")):
-    assert config.from_dict(dict(d, fused_ekf=old)) == config.TrainConfig(ekf_kernel=new)
+    assert config.from_dict(dict(d, fused_ekf=old)) == config.TrainConfig().with_env(ekf_kernel=new)
   for bad in (1, "cuda", None):
     with pytest.raises(ValueError, match="config key 'fused_ekf' must be false, true"):
       config.from_dict(dict(d, fused_ekf=bad))

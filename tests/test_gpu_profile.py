@@ -97,7 +97,7 @@ def test_a_compiled_training_iteration_carries_the_stage_scopes():
   from specguard_jax.ppo import attacker, config, distributed, iteration
   tiny = config.PPOConfig(num_minibatches=2, update_epochs=1)
   cfg = config.TrainConfig(num_envs=8, unroll_length=2, iters_per_call=1, hidden=(16, 16), sg=tiny, aa=tiny,
-                           worlds=("suburban_residential",), num_devices=1).validate()
+                           num_devices=1).with_env(worlds=("suburban_residential",)).validate()
   ph = iteration.make_phase(cfg, 1, distributed.make_mesh(1))
   k = jax.random.PRNGKey(0)
   carry = jax.eval_shape(ph.init, k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS))

@@ -39,8 +39,8 @@ COMMON = textwrap.dedent("""
   TINY = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
   # checkpoint_every_s: only the end-of-phase checkpoints (the restores below read the last one).
   cfg = config.TrainConfig(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=128, phase2_steps=128,
-                           hidden=(32, 32), worlds=("suburban_residential",), sg=TINY, aa=TINY, seed=3,
-                           env_groups=4, alternate_iters=1, checkpoint_every_s=1e9).validate()
+                           hidden=(32, 32), sg=TINY, aa=TINY, seed=3, env_groups=4, alternate_iters=1,
+                           checkpoint_every_s=1e9).with_env(worlds=("suburban_residential",)).validate()
   cfg2 = dataclasses.replace(cfg, phase1_steps=0)   # phase 2 only: 1 SG + 1 AA iteration, cfg's phase-2 programs
   CB = dataclasses.replace(cfg2, seed=4, sg=dataclasses.replace(TINY, lr=2e-3, clip_eps=0.1),
                            aa=dataclasses.replace(TINY, ent_coef=0.02))   # the sweep's member b

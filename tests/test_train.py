@@ -21,11 +21,12 @@ from specguard_jax.ppo import attacker, config, iteration, losses, networks, run
 TINY_PPO = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
 
 
-def tiny(**kw):
+def tiny(env=None, **kw):
+  """A tiny TrainConfig: kw TrainConfig fields, env: fields of its EnvConfig (TrainConfig.env)."""
   base = dict(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=256, phase2_steps=0, hidden=(32, 32),
-              worlds=("suburban_residential",), sg=TINY_PPO, aa=TINY_PPO, checkpoint_every_s=0.0, seed=3)
+              sg=TINY_PPO, aa=TINY_PPO, checkpoint_every_s=0.0, seed=3)
   base.update(kw)
-  return config.TrainConfig(**base).validate()
+  return config.TrainConfig(**base).with_env(**{"worlds": ("suburban_residential",), **(env or {})}).validate()
 
 
 def test_gae_bootstraps_truncation_not_termination():
@@ -234,7 +235,7 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
 def test_trainer_envs_keep_the_ekf_records_only_for_the_residual_detector():
   """The trainer's envs skip the NaN fallback, and the EKF records unless the training detector reads them."""
   for detector, phase, want in (("oracle", 1, False), ("oracle", 2, False), ("residual", 2, True)):
-    env = iteration.make_env(tiny(detector=detector), phase)
+    env = iteration.make_env(tiny(env=dict(detector=detector)), phase)
     env = getattr(env, "env", env)   # phase 2: the AttackerEnv's wrapped env
     assert (env.config.nan_fallback, env.config.ekf_records) == (False, want), (detector, phase)
 
@@ -278,14 +279,14 @@ def test_bf16_matmuls_only_in_the_agents_networks():
 
 
 def test_unroll_ticks_reaches_the_trainers_envs():
-  """train.py --unroll-ticks: TrainConfig.unroll_ticks, on in both phases' envs (EnvConfig.unroll_ticks); off by
-  default."""
-  assert not train_cli.build_config(train_cli.parse_args([])).unroll_ticks
+  """train.py --unroll-ticks: TrainConfig.env.unroll_ticks, on in both phases' envs (EnvConfig.unroll_ticks); off
+  by default."""
+  assert not train_cli.build_config(train_cli.parse_args([])).env.unroll_ticks
   cfg = train_cli.build_config(train_cli.parse_args(["--unroll-ticks"]))
-  assert cfg.unroll_ticks
+  assert cfg.env.unroll_ticks
   assert iteration.make_env(cfg, 1).config.unroll_ticks
   assert iteration.make_env(cfg, 2).env.config.unroll_ticks
-  assert not iteration.make_env(dataclasses.replace(cfg, unroll_ticks=False), 2).env.config.unroll_ticks
+  assert not iteration.make_env(cfg.with_env(unroll_ticks=False), 2).env.config.unroll_ticks
 
 
 def test_bf16_network_dtype_only_in_the_hidden_layers():
@@ -318,7 +319,12 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
   with pytest.raises(ValueError, match="'fused_mlp' = True is no longer supported"):
     config.from_dict({"fused_mlp": True})
   # values of the wrong type name their key (a string for a bool reached the env's lax.scan as a TypeError)
-  for d, msg in (({"unroll_ticks": "yes"}, "'unroll_ticks' must be bool, got 'yes'"),
+  for d, msg in (({"unroll_ticks": "yes"}, "'env.unroll_ticks' must be bool, got 'yes'"),
+                 ({"env": {"unroll_ticks": "yes"}}, "'env.unroll_ticks' must be bool, got 'yes'"),
+                 ({"env": {"clearance": "far"}}, "'env.clearance' must be float, got 'far'"),
+                 ({"env": {"bogus": 1}}, "unknown env key"), ({"env": 3}, "'env' must be an object"),
+                 ({"env": {"mission": {"a": 1}}}, "'env.mission' is an object a config file cannot set"),
+                 ({"detector": "oracle", "env": {"detector": "residual"}}, "given both at the top level and in env"),
                  ({"num_envs": 2.5}, "'num_envs' must be int"), ({"seed": True}, "'seed' must be int"),
                  ({"vehicle": 3}, "'vehicle' must be str"), ({"sg": {"lr": "fast"}}, "'sg.lr' must be float"),
                  ({"aa": 1}, "'aa' must be an object"), ({"fused_ekf": 1}, "'fused_ekf' must be false, true")):
@@ -326,11 +332,11 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
       config.from_dict(d)
   cfg = config.from_dict({"phase1_steps": 1e8, "sg": {"lr": 1}, "fused_ekf": "lanes", "worlds": ["urban_park"]})
   assert cfg.phase1_steps == 100_000_000 and isinstance(cfg.phase1_steps, int) and cfg.sg.lr == 1.0
-  assert cfg.ekf_kernel == "lanes" and cfg.worlds == ("urban_park",)   # an older run's fused_ekf
+  assert cfg.env.ekf_kernel == "lanes" and cfg.env.worlds == ("urban_park",)   # an older run's fused_ekf
   assert config.from_dict(config.TrainConfig().to_dict()) == config.TrainConfig()   # a run dir's config.json
   if jax.default_backend() != "gpu":
     with pytest.raises(ValueError, match="ekf_kernel='lanes' needs a GPU"):
-      tiny(ekf_kernel="lanes")
+      tiny(env=dict(ekf_kernel="lanes"))
   bad = tmp_path / "c.json"
   bad.write_text("{not json")
   assert train_cli.main(["--config", str(bad), "--out", str(tmp_path / "r")]) == 2
@@ -338,6 +344,126 @@ def test_bad_config_and_flags_are_one_line_errors(tmp_path, capsys):
   assert len(err) == 1 and "cannot read config file" in err[0]
   assert train_cli.main(["--resume", str(tmp_path / "nothing")]) == 2
   assert "not a run directory" in capsys.readouterr().err
+
+
+W4 = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
+# A config.json as train.py wrote it before the env settings moved into TrainConfig.env (flat keys), non-default
+OLD_FLAT_CONFIG = {
+    "vehicle": "drone", "variant": "pc", "worlds": ["urban_park"], "reward": "binary", "action": "gaussian",
+    "hidden": [256, 256, 256], "activation": "tanh", "speeds": [4.0, 4.0, 2.0], "residual": False,
+    "init_log_std": -1.0, "num_envs": 256, "unroll_length": 32, "phase1_steps": 2000000, "phase2_steps": 2000000,
+    "iters_per_call": 4, "seed": 0, "reconstruction": False, "detector": "residual", "eval_detector": "oracle",
+    "detector_delay": 1.0, "attack_sensors": ["gps", "gyro", "accel", "mag", "baro", "flow"],
+    "attack_max_duration_s": 40.0, "attack_alpha": 1.0, "attack_beta": 0.0, "attack_gamma": 0.0,
+    "alternate_iters": 10, "converge_eps": 0.0, "converge_window": 20, "completion_bonus": -1.0, "obs_clip": 10.0,
+    "sg": {"lr": 0.0003, "lr_schedule": "constant", "lr_end_frac": 0.1, "gamma": 0.99, "gae_lambda": 0.95,
+           "clip_eps": 0.2, "value_clip_eps": 0.0, "vf_coef": 0.5, "ent_coef": 0.003, "max_grad_norm": 0.5,
+           "num_minibatches": 8, "update_epochs": 4, "normalize_advantage": True, "max_rows_per_pass": 1048576},
+    "aa": {"lr": 0.0003, "lr_schedule": "constant", "lr_end_frac": 0.1, "gamma": 0.99, "gae_lambda": 0.95,
+           "clip_eps": 0.2, "value_clip_eps": 0.0, "vf_coef": 0.5, "ent_coef": 0.01, "max_grad_norm": 0.5,
+           "num_minibatches": 8, "update_epochs": 4, "normalize_advantage": True, "max_rows_per_pass": 1048576},
+    "eval_missions": 0, "checkpoint_every_s": 120.0, "max_nan_skips": 100, "fused_ekf": False, "unroll_ticks": True,
+    "num_devices": 0, "env_groups": 0, "matmul_precision": "default", "network_dtype": "float32"}
+
+
+def test_phase_and_eval_env_configs_are_the_old_trainers():
+  """config.env_config builds, for the default run and two others, exactly the EnvConfigs the trainer built when
+  TrainConfig mirrored the env fields (written out here): phase 1, phase 2 (training detector) and the held-out
+  evaluation's (eval_detector, EnvConfig's defaults for the speed options)."""
+  from envs.base import EnvConfig
+  from specguard_jax import controllers
+  expected = {
+      "default": (config.TrainConfig(), (
+          EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="override",
+                    nan_fallback=False, ekf_records=False),
+          EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
+                    detector="oracle", detector_delay=0.5, reconstruction=True, nan_fallback=False,
+                    ekf_records=False),
+          EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
+                    detector="residual", detector_delay=0.5, reconstruction=True))),
+      "pc, residual, old flat config.json": (config.from_dict(OLD_FLAT_CONFIG), (
+          EnvConfig(worlds=("urban_park",), reward="binary", override_frame="body", override_residual=False,
+                    unroll_ticks=True, ekf_kernel="xla", control_mode="override", nan_fallback=False,
+                    ekf_records=False),
+          EnvConfig(worlds=("urban_park",), reward="binary", override_frame="body", override_residual=False,
+                    unroll_ticks=True, ekf_kernel="xla", control_mode="override", detector="residual",
+                    detector_delay=1.0, reconstruction=False, nan_fallback=False, ekf_records=True),
+          EnvConfig(worlds=("urban_park",), reward="binary", override_frame="body", override_residual=False,
+                    control_mode="override", detector="oracle", detector_delay=1.0, reconstruction=False))),
+      "ftc-like, lanes kernel": (config.TrainConfig().with_env(reward="survival", reconstruction=False,
+                                                               ekf_kernel="lanes"), (
+          EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
+                    control_mode="override", nan_fallback=False, ekf_records=False),
+          EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
+                    control_mode="reactive", detector="oracle", detector_delay=0.5, reconstruction=False,
+                    nan_fallback=False, ekf_records=False),
+          EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True,
+                    control_mode="reactive", detector="residual", detector_delay=0.5, reconstruction=False))),
+  }
+  for name, (cfg, want) in expected.items():
+    got = tuple(config.env_config(cfg, phase) for phase in (1, 2, "eval"))
+    assert got == want, name
+  assert controllers.run_overrides(config.TrainConfig()) == (
+      ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
+      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True))
+  cfg = tiny(phase2_steps=256)   # the envs the trainer and the held-out evaluation build carry these configs
+  assert iteration.make_env(cfg, 1).config == config.env_config(cfg, 1)
+  assert iteration.make_env(cfg, 2).env.config == config.env_config(cfg, 2)
+  assert iteration.eval_env(cfg).config == config.env_config(cfg, "eval")
+
+
+def test_old_flat_config_json_loads_into_env_and_resumes(tmp_path):
+  """A run directory's config.json from before TrainConfig.env (flat keys) loads with those keys in env, for a resume
+  (runner.load_run_config) and for evaluation (controllers.load_run_config); the new nested form round-trips."""
+  from specguard_jax import controllers
+  cfg = config.from_dict(OLD_FLAT_CONFIG)
+  assert (cfg.variant, cfg.eval_detector) == ("pc", "oracle")
+  assert cfg.env == dataclasses.replace(config.TRAIN_ENV, worlds=("urban_park",), reward="binary",
+                                        override_residual=False, reconstruction=False, detector="residual",
+                                        detector_delay=1.0, unroll_ticks=True)
+  (tmp_path / "config.json").write_text(json.dumps(OLD_FLAT_CONFIG))
+  assert runner.load_run_config(str(tmp_path)) == cfg
+  assert controllers.load_run_config(str(tmp_path)) == cfg
+  d = json.loads(json.dumps(cfg.to_dict()))
+  assert "worlds" not in d and d["env"]["worlds"] == ["urban_park"] and d["env"]["mission"] is None
+  assert config.from_dict(d) == cfg
+
+
+def test_flags_and_set_reach_the_config_through_from_dict(capsys):
+  """train.py's flags each set their config key (nested ones in env); --set KEY=VALUE sets any field, nested ones
+  dotted, values as JSON else strings; an unknown key or a wrong type is a one-line error (exit 2)."""
+  a = train_cli.parse_args(["--world", "urban_park,open_mountain", "--detector", "residual", "--no-reconstruction",
+                            "--reward", "binary", "--seed", "5", "--steps", "1001", "--envs", "64",
+                            "--set", "env.clearance=6", "sg.lr=1e-4", "env.detector_delay=1", "activation=relu"])
+  cfg = train_cli.build_config(a)
+  assert cfg.env.worlds == ("urban_park", "open_mountain") and cfg.env.detector == "residual"
+  assert not cfg.env.reconstruction and cfg.env.reward == "binary" and cfg.env.clearance == 6.0
+  assert cfg.env.detector_delay == 1.0 and isinstance(cfg.env.detector_delay, float)
+  assert (cfg.seed, cfg.num_envs, cfg.phase1_steps, cfg.phase2_steps) == (5, 64, 500, 501)
+  assert cfg.sg.lr == 1e-4 and cfg.activation == "relu"
+  cfg = train_cli.build_config(train_cli.parse_args(["--set", "env.ekf_records=false"]))
+  assert not config.env_config(cfg, 2).ekf_records and config.env_config(cfg, "eval").ekf_records
+  for argv, msg in ((["--set", "env.bogus=1"], "unknown env key(s) bogus"),
+                    (["--set", "seed=abc"], "config key 'seed' must be int, got 'abc'"),
+                    (["--set", "env.clearance=[1]"], "config key 'env.clearance' must be float"),
+                    (["--set", "clearance"], "bad --set item 'clearance'"),
+                    (["--set", "env.control_mode=override"], "env.control_mode is set per phase from variant"),
+                    (["--detector", "residual", "--set", "env.ekf_records=false"], "needs ekf_records=True")):
+    assert train_cli.main(argv) == 2, argv
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("train.py: error: ") and msg in err[0], (argv, err)
+
+
+def test_sweep_keys_reach_nested_and_old_flat_fields():
+  """--sweep env.clearance=6,9 sweeps a nested env field; an old flat key (detector=...) still sweeps env's."""
+  base = tiny()
+  members = train_cli._sweep_members(base, ["env.clearance=6,9", "detector=oracle,residual"])
+  assert [p for p, _ in members] == [{"env.clearance": c, "detector": d} for c in (6, 9)
+                                     for d in ("oracle", "residual")]
+  assert [(m.env.clearance, m.env.detector) for _, m in members] == [(6.0, "oracle"), (6.0, "residual"),
+                                                                      (9.0, "oracle"), (9.0, "residual")]
+  with pytest.raises(ValueError, match="config key 'env.clearance' must be float"):
+    train_cli._sweep_members(base, ["env.clearance=far"])
 
 
 def test_deterministic_gpu_flag_reaches_xla_before_the_backend_starts(tmp_path):

@@ -30,16 +30,16 @@ FULL_PHASE2_STEPS = 40_000_000
 
 
 def train_config(ctx) -> config_lib.TrainConfig:
-  common_kw = dict(vehicle=ctx.vehicle, variant="rc", reward="survival", reconstruction=False,
-                   worlds=tuple(ctx.worlds), seed=ctx.seed, eval_missions=0, eval_detector="residual")
+  common_kw = dict(vehicle=ctx.vehicle, variant="rc", seed=ctx.seed, eval_missions=0, eval_detector="residual")
+  env_kw = dict(reward="survival", reconstruction=False, worlds=tuple(ctx.worlds))
   if ctx.train_budget == "ci":
     tiny = config_lib.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
     return config_lib.TrainConfig(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=0,
                                   phase2_steps=256, hidden=(32, 32), sg=tiny, aa=tiny, checkpoint_every_s=1e9,
-                                  **common_kw).validate()
+                                  **common_kw).with_env(**env_kw).validate()
   if ctx.train_budget == "full":
     sizes = dict(runner.default_sizes("gpu"), phase1_steps=0, phase2_steps=FULL_PHASE2_STEPS, eval_missions=0)
-    return config_lib.TrainConfig(**{**sizes, **common_kw}).validate()
+    return config_lib.TrainConfig(**{**sizes, **common_kw}).with_env(**env_kw).validate()
   common.budget(ctx.train_budget)   # raises the one-line error
   raise AssertionError
 
@@ -57,9 +57,9 @@ def build(ctx):
     fn, p, run_cfg = controllers.load_run_policy(run_dir)
   except controllers.NotAvailable as e:
     raise ValueError(f"corrupt baseline cache {run_dir}: {e} (delete it to retrain)") from None
-  if run_cfg.reward != "survival" or run_cfg.vehicle != ctx.vehicle:
+  if run_cfg.env.reward != "survival" or run_cfg.vehicle != ctx.vehicle:
     raise ValueError(f"corrupt baseline cache {run_dir}: holds a {run_cfg.vehicle} run with reward "
-                     f"{run_cfg.reward!r}, not an FTC (survival) run (delete it to retrain)")
+                     f"{run_cfg.env.reward!r}, not an FTC (survival) run (delete it to retrain)")
   over = controllers.run_overrides(dataclasses.replace(run_cfg, eval_detector="residual"), reconstruction=False)
   return controllers.Controller("ftc", over, fn, p,
                                 "FTC: RL recovery policy trained by our PPO only to survive (no specs), reactive, "

@@ -33,6 +33,7 @@ from specguard_jax import attacks
 from specguard_jax.detection import detector as det
 from specguard_jax.detection import preset_file
 from specguard_jax.detection import traces
+from specguard_jax.types import VEHICLES
 
 # The trainer's worlds (specguard_jax.ppo.config) first, then the other presets: the preset holds in all of them.
 CAL_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain", "suburban_streets",
@@ -126,7 +127,7 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
 
 def main(argv=None):
   ap = argparse.ArgumentParser(description="calibrate and save the vehicle's residual-detector preset")
-  ap.add_argument("--vehicle", choices=("drone", "rover"), default="drone")
+  ap.add_argument("--vehicle", choices=VEHICLES, default="drone")
   ap.add_argument("--missions", type=int, default=1024, help="attack-free calibration missions")
   ap.add_argument("--seconds", type=float, default=135.0, help="recorded length (s): covers the longest mission")
   ap.add_argument("--mission-s", type=float, nargs=2, default=(60.0, 120.0), metavar=("MIN", "MAX"),

@@ -21,6 +21,7 @@ from envs.missions import MissionConfig
 from specguard_jax.estimation import dynamics as dyn
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import traces
+from specguard_jax.types import VEHICLES
 
 FIT_WORLDS = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
 
@@ -44,7 +45,7 @@ def fit_vehicle(vehicle: str, missions: int = 16, seconds: float = 40.0, seed: i
 
 def main(argv=None):
   ap = argparse.ArgumentParser(description="fit and save the vehicle's dynamics model for state reconstruction")
-  ap.add_argument("--vehicle", choices=("drone", "rover"), default="drone")
+  ap.add_argument("--vehicle", choices=VEHICLES, default="drone")
   ap.add_argument("--missions", type=int, default=16)
   ap.add_argument("--seconds", type=float, default=40.0)
   ap.add_argument("--seed", type=int, default=0)

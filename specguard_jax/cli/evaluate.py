@@ -28,6 +28,8 @@ import subprocess
 import sys
 import time
 
+from specguard_jax.types import VEHICLES
+
 RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "specguard_no_recon", "suburban", "urban", "rover")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
 UNSEEN = {"suburban": ("suburban_to_urban", ("urban_high_rise",)),
@@ -51,7 +53,7 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--sensors", help="comma-separated attacked sensors; a+b = both at once (default: all)")
   p.add_argument("--profiles", default="overt,stealthy", help="overt,stealthy")
   p.add_argument("--worlds", help="comma-separated evaluation worlds (default: the run's training worlds)")
-  p.add_argument("--vehicle", choices=("drone", "rover"), help="default: the run's vehicle, else drone")
+  p.add_argument("--vehicle", choices=VEHICLES, help="default: the run's vehicle, else drone")
   p.add_argument("--seed", type=int, default=10_000, help="mission/attack/noise seed (unseen by training)")
   p.add_argument("--suite", choices=("paper",), help="run every experiment of the paper our code can run")
   p.add_argument("--max-s", type=float, default=400.0, help="episode cap (s)")
@@ -140,7 +142,7 @@ def plan(args) -> dict:
     except C.NotAvailable as e:
       raise ValueError(f"--run: {e}") from None
   vehicle = args.vehicle or (run_cfg.vehicle if run_cfg else "drone")
-  worlds = _csv(args.worlds) or (tuple(run_cfg.worlds) if run_cfg else C.DEFAULT_WORLDS)
+  worlds = _csv(args.worlds) or (tuple(run_cfg.env.worlds) if run_cfg else C.DEFAULT_WORLDS)
   bad = [w for w in worlds if w not in worlds_lib.PRESETS]
   if bad:
     raise ValueError(f"unknown world(s) {', '.join(bad)}; choose from {', '.join(worlds_lib.PRESETS)}")

@@ -6,6 +6,7 @@
   python train.py --resume runs/drone_rc           # continue an interrupted run from its last checkpoint
   python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
   python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
+  python train.py --set env.clearance=6 sg.lr=1e-4  # any config field, nested ones dotted (values as JSON)
   python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
   python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
 
@@ -16,14 +17,12 @@ prints where they are.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
 import time
 
-from specguard_jax.types import SENSOR_NAMES
-
+from specguard_jax.types import EKF_KERNELS, REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
 DETERMINISTIC_XLA_FLAG = "--xla_gpu_deterministic_ops=true"
 
@@ -51,51 +50,74 @@ def _csv(s):
   return tuple(x for x in s.split(",") if x)
 
 
+CONFIG_DEST = "config:"
+"""Prefix of the argparse dest of a flag that sets a config key: dest 'config:env.worlds' sets env.worlds."""
+
+
+def _config_flag(ap, *names, key: str, **kw):
+  """A flag that sets config key `key` (dotted for a nested field, e.g. 'env.worlds'); build_config applies every
+  such flag given (default None: not given) through config.from_dict, the type checks of a JSON config."""
+  if kw.get("action", "store") == "store" and "choices" not in kw and "metavar" not in kw:
+    kw["metavar"] = names[0].lstrip("-").replace("-", "_").upper()
+  return ap.add_argument(*names, dest=CONFIG_DEST + key, default=None, **kw)
+
+
 def parse_args(argv=None):
   ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-  ap.add_argument("--vehicle", choices=("drone", "rover"))
-  ap.add_argument("--variant", choices=("rc", "pc"), help="rc: reactive control (default); pc: proactive control")
+  _config_flag(ap, "--vehicle", key="vehicle", choices=VEHICLES)
+  _config_flag(ap, "--variant", key="variant", choices=VARIANTS,
+               help="rc: reactive control (default); pc: proactive control")
   ap.add_argument("--steps", type=int, help="total env steps (split evenly between phase 1 and phase 2)")
-  ap.add_argument("--phase1-steps", type=int)
-  ap.add_argument("--phase2-steps", type=int)
-  ap.add_argument("--envs", type=int, help="parallel envs (default: 16384 on a GPU, 256 on the CPU)")
-  ap.add_argument("--unroll", type=int, help="env steps per env per iteration")
-  ap.add_argument("--iters-per-call", type=int, help="training iterations per compiled call")
-  ap.add_argument("--seed", type=int)
+  _config_flag(ap, "--phase1-steps", key="phase1_steps", type=int)
+  _config_flag(ap, "--phase2-steps", key="phase2_steps", type=int)
+  _config_flag(ap, "--envs", key="num_envs", type=int, help="parallel envs (default: 16384 on a GPU, 256 on the CPU)")
+  _config_flag(ap, "--unroll", key="unroll_length", type=int, help="env steps per env per iteration")
+  _config_flag(ap, "--iters-per-call", key="iters_per_call", type=int, help="training iterations per compiled call")
+  _config_flag(ap, "--seed", key="seed", type=int)
   ap.add_argument("--out", help="run directory (default runs/<vehicle>_<variant>_s<seed>_<time>)")
   ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
-  ap.add_argument("--world", dest="worlds", type=_csv, help="comma-separated world presets to train in")
-  ap.add_argument("--reward", choices=("compliance", "binary", "survival"),
-                  help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
-  ap.add_argument("--action", choices=("gaussian", "discrete"), help="continuous velocity setpoint or the paper's 6")
-  ap.add_argument("--no-reconstruction", action="store_true", help="ablation: no state reconstruction in phase 2")
-  ap.add_argument("--detector", choices=("residual", "oracle"))
-  ap.add_argument("--attack-sensors", type=_csv, help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
-  ap.add_argument("--converge-eps", type=float, help="stop phase 2 when both average returns change less than this")
-  ap.add_argument("--eval-missions", type=int, help="held-out missions per setting evaluated after training")
+  _config_flag(ap, "--world", key="env.worlds", type=_csv, metavar="WORLDS",
+               help="comma-separated world presets to train in")
+  _config_flag(ap, "--reward", key="env.reward", choices=REWARDS,
+               help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
+  _config_flag(ap, "--action", key="action", choices=("gaussian", "discrete"),
+               help="continuous velocity setpoint or the paper's 6")
+  _config_flag(ap, "--no-reconstruction", key="env.reconstruction", action="store_const", const=False,
+               help="ablation: no state reconstruction in phase 2")
+  _config_flag(ap, "--detector", key="env.detector", choices=TRAIN_DETECTORS, help="the training detector (phase 2)")
+  _config_flag(ap, "--attack-sensors", key="attack_sensors", type=_csv,
+               help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
+  _config_flag(ap, "--converge-eps", key="converge_eps", type=float,
+               help="stop phase 2 when both average returns change less than this")
+  _config_flag(ap, "--eval-missions", key="eval_missions", type=int,
+               help="held-out missions per setting evaluated after training")
   ap.add_argument("--config", help="JSON file of TrainConfig fields")
+  ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                  help="set any config field, a nested one dotted (env.clearance=6 sg.lr=1e-4 env.ekf_records=false);\n"
+                       "values as JSON (else a string), checked like a --config file's; applied after the other flags")
   ap.add_argument("--sweep", nargs="+", metavar="KEY=V1,V2",
                   help="train every combination of these config values (e.g. seed=0,1 sg.lr=1e-4,3e-4)")
   ap.add_argument("--sequential-sweep", action="store_true",
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
-  ap.add_argument("--ekf-kernel", choices=("auto", "xla", "lanes"),
-                  help="the EKF tick: lanes (one Mosaic GPU kernel, NVIDIA Hopper or newer), xla, or auto (default: "
-                       "lanes where the GPU and jax support it, else xla)")
-  ap.add_argument("--unroll-ticks", action="store_true", default=None,
-                  help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps, "
-                       "more compile per phase; for long runs")
-  ap.add_argument("--matmul-precision", choices=("default", "bf16"),
-                  help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
-                       "with f32 accumulation (env, evaluation and ONNX export stay f32)")
-  ap.add_argument("--network-dtype", choices=("float32", "bfloat16"),
-                  help="the agents' networks' compute dtype in training: float32 (default) or bfloat16 (matmuls, "
-                       "bias adds and tanh in bf16; f32 parameters, optimizer and losses; evaluation and ONNX "
-                       "export stay f32)")
-  ap.add_argument("--devices", type=int, help="data-parallel devices (default 0: all of every process's)")
-  ap.add_argument("--env-groups", type=int,
-                  help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
-                       "result on any device count")
+  _config_flag(ap, "--ekf-kernel", key="env.ekf_kernel", choices=EKF_KERNELS,
+               help="the EKF tick: lanes (one Mosaic GPU kernel, NVIDIA Hopper or newer), xla, or auto (default: "
+                    "lanes where the GPU and jax support it, else xla)")
+  _config_flag(ap, "--unroll-ticks", key="env.unroll_ticks", action="store_true",
+               help="unroll the env step's GPS-free autopilot ticks (no tick loop): quicker env steps, "
+                    "more compile per phase; for long runs")
+  _config_flag(ap, "--matmul-precision", key="matmul_precision", choices=("default", "bf16"),
+               help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
+                    "with f32 accumulation (env, evaluation and ONNX export stay f32)")
+  _config_flag(ap, "--network-dtype", key="network_dtype", choices=("float32", "bfloat16"),
+               help="the agents' networks' compute dtype in training: float32 (default) or bfloat16 (matmuls, "
+                    "bias adds and tanh in bf16; f32 parameters, optimizer and losses; evaluation and ONNX "
+                    "export stay f32)")
+  _config_flag(ap, "--devices", key="num_devices", type=int,
+               help="data-parallel devices (default 0: all of every process's)")
+  _config_flag(ap, "--env-groups", key="env_groups", type=int,
+               help="independent auto-reset env groups (default 0: one per device); fix it to get the same "
+                    "result on any device count")
   ap.add_argument("--coordinator", metavar="ADDR:PORT", help="multi-host: process 0's address (jax.distributed)")
   ap.add_argument("--num-processes", type=int, help="multi-host: number of processes")
   ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
@@ -114,7 +136,28 @@ def parse_args(argv=None):
   return ap.parse_args(argv)
 
 
+def _json_or_str(v: str):
+  """A --set / --sweep value: JSON (1e-4, false, [1, 2], "x"), else the string itself (urban_park)."""
+  try:
+    return json.loads(v)
+  except json.JSONDecodeError:
+    return v
+
+
+def _set_items(items) -> dict:
+  """--set KEY=VALUE items as {key: value} (values: _json_or_str)."""
+  out = {}
+  for item in items:
+    k, sep, v = item.partition("=")
+    if not sep or not k:
+      raise ValueError(f"bad --set item {item!r}; expected KEY=VALUE (e.g. env.clearance=6)")
+    out[k] = _json_or_str(v)
+  return out
+
+
 def build_config(a):
+  """The run's TrainConfig: the backend's default sizes, then --config, then the flags (each `_config_flag` by its
+  config key, --steps split between the phases), then --set; every layer type-checked by config.from_dict."""
   import jax
 
   from specguard_jax.ppo import config as C
@@ -122,22 +165,12 @@ def build_config(a):
   cfg = C.TrainConfig(**default_sizes(jax.default_backend()))
   if a.config:
     cfg = C.load_config_file(a.config, cfg)
-  over = {}
-  simple = {"vehicle": a.vehicle, "variant": a.variant, "num_envs": a.envs, "unroll_length": a.unroll,
-            "iters_per_call": a.iters_per_call, "seed": a.seed, "worlds": a.worlds, "reward": a.reward,
-            "action": a.action, "detector": a.detector, "attack_sensors": a.attack_sensors,
-            "converge_eps": a.converge_eps, "eval_missions": a.eval_missions, "phase1_steps": a.phase1_steps, "phase2_steps": a.phase2_steps,
-            "num_devices": a.devices, "env_groups": a.env_groups,
-            "ekf_kernel": a.ekf_kernel, "unroll_ticks": a.unroll_ticks,
-            "matmul_precision": a.matmul_precision, "network_dtype": a.network_dtype}
-  over.update({k: v for k, v in simple.items() if v is not None})
+  flags = {k[len(CONFIG_DEST):]: v for k, v in vars(a).items() if k.startswith(CONFIG_DEST) and v is not None}
   if a.steps is not None:
-    over["phase1_steps"] = a.steps // 2
-    over["phase2_steps"] = a.steps - a.steps // 2
-  if a.no_reconstruction:
-    over["reconstruction"] = False
-  cfg = dataclasses.replace(cfg, **over)
-  if "num_envs" in over and cfg.num_envs < 1024 and jax.default_backend() == "gpu":
+    flags.update(phase1_steps=a.steps // 2, phase2_steps=a.steps - a.steps // 2)
+  cfg = C.from_dict(C.nested(flags), cfg)
+  cfg = C.from_dict(C.nested(_set_items(a.set)), cfg)
+  if "num_envs" in flags and cfg.num_envs < 1024 and jax.default_backend() == "gpu":
     print(f"[train] note: {cfg.num_envs} envs leave most of the GPU idle", file=sys.stderr)
   return cfg.validate()
 
@@ -151,17 +184,10 @@ def _sweep_members(cfg, items):
     if "=" not in item:
       raise ValueError(f"bad --sweep item {item!r}; expected KEY=V1,V2 (e.g. seed=0,1)")
     k, vals = item.split("=", 1)
-    axes.append([(k, json.loads(v) if v[:1] in "-0123456789[{\"tf" else v) for v in vals.split(",")])
+    axes.append([(k, _json_or_str(v)) for v in vals.split(",")])
   members = []
   for combo in itertools.product(*axes):
-    d = {}
-    for k, v in combo:
-      if "." in k:
-        agent, field = k.split(".", 1)
-        d.setdefault(agent, {})[field] = v
-      else:
-        d[k] = v
-    members.append((dict(combo), C.from_dict(d, cfg).validate()))
+    members.append((dict(combo), C.from_dict(C.nested(dict(combo)), cfg).validate()))
   return members
 
 
@@ -229,8 +255,9 @@ def main(argv=None):
     if members:
       _sweep(members, out, a)
       return 0
+    devices = vars(a)[CONFIG_DEST + "num_devices"]
     s = runner.train(cfg, out, resume=bool(a.resume), progress=not a.no_progress, export=not a.no_export,
-                     num_devices=a.devices if a.resume else None, compile_ahead=a.compile_ahead)
+                     num_devices=devices if a.resume else None, compile_ahead=a.compile_ahead)
   except ValueError as e:
     print(f"\ntrain.py: error: {e}", file=sys.stderr)
     return 2

@@ -19,6 +19,7 @@ import numpy as np
 
 from specguard_jax import assets
 from specguard_jax.estimation import dynamics as dyn
+from specguard_jax.types import VEHICLES
 
 
 

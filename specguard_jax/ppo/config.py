@@ -7,10 +7,10 @@ import json
 
 import jax
 
-from specguard_jax.types import SENSOR_NAMES
+from envs.base import EnvConfig
+from envs.worlds import DEFAULT_WORLDS
+from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
-VARIANTS = ("rc", "pc")
-VEHICLES = ("drone", "rover")
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
 NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
 
@@ -46,33 +46,64 @@ class PPOConfig:
   max_rows_per_pass: int = 1 << 20
 
 
+TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
+                      detector_delay=0.5, reconstruction=True, nan_fallback=False)
+"""TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
+the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
+
+# EnvConfig fields of the trainer's speed options, which the held-out evaluation's env leaves at EnvConfig's defaults
+# (it is the deployment env: a training speed setting of the same filter and physics does not belong there).
+_EVAL_ENV_DEFAULTS = {k: getattr(EnvConfig(), k) for k in ("ekf_kernel", "unroll_ticks", "nan_fallback", "ekf_records")}
+
+
+def env_config(cfg: "TrainConfig", phase) -> EnvConfig:
+  """The EnvConfig of one of a run's envs, all `dataclasses.replace` of cfg.env: phase 1 (compliance: SpecGuard
+  overrides the navigator, no detector, no reconstruction), phase 2 (adversarial: the variant's control mode with
+  the training detector cfg.env.detector) or "eval" (the held-out evaluation's deployment env: the variant's control
+  mode with cfg.eval_detector and EnvConfig's defaults for the trainer's speed options). The training phases keep
+  the EKFs' per-channel records only where their detector reads them (detector 'residual')."""
+  env = cfg.env
+  mode = "reactive" if cfg.variant == "rc" else "override"
+  if phase == 1:
+    return dataclasses.replace(env, control_mode="override", detector="none", detector_delay=0.0, reconstruction=False,
+                               ekf_records=False)
+  if phase == 2:
+    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector == "residual")
+  if phase == "eval":
+    return dataclasses.replace(env, control_mode=mode, detector=cfg.eval_detector, **_EVAL_ENV_DEFAULTS)
+  raise ValueError(f"unknown phase {phase!r}; choose 1, 2 or 'eval'")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
   """A training run. Sizes: num_envs parallel episodes, unroll_length steps each per iteration; phase budgets in env
   steps (phase1_steps without attacks, phase2_steps adversarial; 0 skips a phase).
 
+  env: the env settings of every env of the run (envs.base.EnvConfig; default TRAIN_ENV), which `env_config`
+  specialises per phase: env.worlds (each episode draws one), env.reward, env.override_residual (SpecGuard's velocity
+  setpoint is a correction added to the mission navigator's setpoint, computed on the reconstructed state under
+  attack; False = it replaces it: the paper's absolute moves, far slower to learn), env.reconstruction (state
+  reconstruction in the loop in phase 2; False = the ablation), env.detector (the training detector of phase 2:
+  'oracle', the true attack window after env.detector_delay s with the true diagnosis, the issue's training
+  detector, or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
+  env.control_mode comes from `variant` per phase.  eval_detector: the held-out evaluation's detector (deployment).
+
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
   (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
-  better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).  reconstruction: state reconstruction in the loop in
-  phase 2 (False = the ablation).  detector: the training detector, 'oracle' (true attack window after detector_delay
-  s, with the true diagnosis: the issue's training detector) or 'residual' (CUSUM); eval_detector: the held-out one.
+  better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
   converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
-  iteration, averaged over the window of iterations).  residual: SpecGuard's velocity setpoint is a correction added to the mission navigator's setpoint (computed on the
-  reconstructed state under attack); False = it replaces it (the paper's absolute moves, far slower to learn).
-  completion_bonus: reward on mission completion in units of the
+  iteration, averaged over the window of iterations).  completion_bonus: reward on mission completion in units of the
   maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
   finishing the mission never looks worse than dawdling.
   """
   vehicle: str = "drone"
   variant: str = "rc"
-  worlds: tuple = ("suburban_residential", "urban_city_streets", "urban_park", "open_mountain")
-  reward: str = "compliance"
+  env: EnvConfig = TRAIN_ENV
   action: str = "gaussian"
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
   speeds: tuple = (4.0, 4.0, 2.0)   # velocity-setpoint (correction) scale per axis (m/s), yaw frame
-  residual: bool = True             # the policy's setpoint is added to the navigator's (see docs/DESIGN.md)
   init_log_std: float = -1.0        # initial log std of the Gaussian head
   num_envs: int = 256
   unroll_length: int = 32
@@ -80,10 +111,7 @@ class TrainConfig:
   phase2_steps: int = 2_000_000
   iters_per_call: int = 4
   seed: int = 0
-  reconstruction: bool = True
-  detector: str = "oracle"
   eval_detector: str = "residual"   # the detector of the held-out evaluation (deployment)
-  detector_delay: float = 0.5
   attack_sensors: tuple = SENSOR_NAMES
   attack_max_duration_s: float = 40.0
   attack_alpha: float = 1.0
@@ -99,10 +127,6 @@ class TrainConfig:
   eval_missions: int = 0            # held-out missions per setting evaluated after training (0: none)
   checkpoint_every_s: float = 120.0
   max_nan_skips: int = 100
-  ekf_kernel: str = "auto"          # envs.base.EnvConfig.ekf_kernel: "auto", "xla" or "lanes" (the EKF tick as one
-                                    # GPU kernel); a run keeps the resolved one in its config.json (runner.train)
-  unroll_ticks: bool = False        # envs.base.EnvConfig.unroll_ticks: the GPS-free ticks unrolled (quicker steps,
-                                    # longer compile)
   num_devices: int = 0              # data-parallel devices (0: all of jax.devices(), every host's; ppo/distributed.py)
   env_groups: int = 0               # independent auto-reset env groups G (0: one per device); results depend on G
   # The agents' networks in training (acting, values, PPO update): 'default' (f32 matmuls, which XLA runs
@@ -114,23 +138,32 @@ class TrainConfig:
   # Evaluation and the ONNX export stay float32.
   network_dtype: str = "float32"
 
+  def with_env(self, **kw) -> "TrainConfig":
+    """This config with these fields of `env` replaced (e.g. cfg.with_env(worlds=("urban_park",)))."""
+    return dataclasses.replace(self, env=dataclasses.replace(self.env, **kw))
+
   def validate(self):
     from envs import worlds as worlds_lib
-    from specguard_jax.ekf_lanes import resolve_ekf_kernel
-    resolve_ekf_kernel(self.ekf_kernel)
+    env = self.env
+    if not isinstance(env, EnvConfig):
+      raise ValueError(f"env must be an envs.base.EnvConfig, got {type(env).__name__}")
+    if env.control_mode != EnvConfig.control_mode:
+      raise ValueError(f"env.control_mode is set per phase from variant; leave it {EnvConfig.control_mode!r} "
+                       f"(got {env.control_mode!r})")
     if self.vehicle not in VEHICLES:
       raise ValueError(f"unknown vehicle {self.vehicle!r}; choose one of {', '.join(VEHICLES)}")
     if self.variant not in VARIANTS:
       raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
-    bad = [w for w in self.worlds if w not in worlds_lib.PRESETS]
-    if bad or not self.worlds:
+    bad = [w for w in env.worlds if w not in worlds_lib.PRESETS]
+    if bad or not env.worlds:
       raise ValueError(f"unknown or no world(s) {bad}; choose from {', '.join(worlds_lib.PRESETS)}")
-    if self.reward not in ("compliance", "binary", "survival"):   # survival: the FTC baseline (baselines/ftc.py)
-      raise ValueError(f"unknown reward {self.reward!r}; choose compliance, binary or survival")
+    if env.reward not in REWARDS:   # survival: the FTC baseline (baselines/ftc.py)
+      raise ValueError(f"unknown reward {env.reward!r}; choose one of {', '.join(REWARDS)}")
     if self.action not in ("gaussian", "discrete"):
       raise ValueError(f"unknown action head {self.action!r}; choose gaussian or discrete")
-    if self.detector not in ("residual", "oracle") or self.eval_detector not in ("residual", "oracle"):
-      raise ValueError(f"unknown detector {self.detector!r}; choose residual or oracle")
+    for name, d in (("env.detector", env.detector), ("eval_detector", self.eval_detector)):
+      if d not in TRAIN_DETECTORS:
+        raise ValueError(f"unknown {name} {d!r}; choose one of {', '.join(TRAIN_DETECTORS)}")
     bad = [s for s in self.attack_sensors if s not in SENSOR_NAMES]
     if bad or not self.attack_sensors:
       raise ValueError(f"unknown or no attack sensor(s) {bad}; choose from {', '.join(SENSOR_NAMES)}")
@@ -160,6 +193,8 @@ class TrainConfig:
         raise ValueError(f"{agent}.gamma must be in (0, 1] and gae_lambda in [0, 1]")
     if len(self.speeds) != 3 or min(self.speeds) < 0:
       raise ValueError("speeds must be 3 non-negative numbers (m/s)")
+    for phase in (1, 2, "eval"):
+      env_config(self, phase).validate()
     return self
 
   @property
@@ -177,9 +212,19 @@ _FUSED_EKF = {False: "xla", "xla": "xla", "lanes": "lanes", True: "auto", "trito
 """Older run directories' `fused_ekf` (the EKF kernel, since renamed ekf_kernel; the Triton kernel was removed) ->
 ekf_kernel."""
 
+FLAT_ENV_KEYS = {"worlds": "worlds", "reward": "reward", "residual": "override_residual",
+                 "reconstruction": "reconstruction", "detector": "detector", "detector_delay": "detector_delay",
+                 "fused_ekf": "ekf_kernel", "ekf_kernel": "ekf_kernel", "unroll_ticks": "unroll_ticks"}
+"""Top-level keys of config files written before the env settings moved into TrainConfig.env: {old key: env field}
+(an old run directory's config.json, a JSON --config or a --sweep key like detector=oracle,residual still load)."""
 
-# JSON values each annotation of TrainConfig / PPOConfig accepts (an int field also takes an integral float: 1e8).
-_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,), "tuple": (list, tuple)}
+# Nested dataclass fields of TrainConfig (PPOConfig, EnvConfig): {key: what an error calls their settings}.
+_NESTED = {"sg": "sg PPO", "aa": "aa PPO", "env": "env"}
+
+# JSON values each annotation of TrainConfig / PPOConfig / EnvConfig accepts (an int field also takes an integral
+# float: 1e8). "Any" fields of EnvConfig (mission, specs, attack, detector_config: objects) take only null.
+_JSON_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,), "tuple": (list, tuple),
+               "Any": (type(None),)}
 
 
 def _typed(key: str, v, annotation: str):
@@ -189,46 +234,77 @@ def _typed(key: str, v, annotation: str):
     return v
   if annotation == "int" and isinstance(v, float) and v.is_integer():
     return int(v)
+  if annotation == "Any" and v is not None:
+    raise ValueError(f"config key {key!r} is an object a config file cannot set (only null), got {v!r}")
   if not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok):
     raise ValueError(f"config key {key!r} must be {annotation.replace(' | ', ' or ')}, got {v!r}")
+  if isinstance(v, list):
+    return tuple(v)
   return float(v) if annotation == "float" else v
 
 
+def _replace_typed(obj, d: dict, prefix: str):
+  """obj (a frozen dataclass) with the fields in d replaced, each checked by `_typed` under key prefix.field."""
+  what = _NESTED[prefix]
+  if not isinstance(d, dict):
+    raise ValueError(f"config key {prefix!r} must be an object of {what} settings, got {d!r}")
+  types = {f.name: str(f.type) for f in dataclasses.fields(obj)}
+  bad = sorted(set(d) - set(types))
+  if bad:
+    raise ValueError(f"unknown {what} key(s) {', '.join(bad)}; valid: {', '.join(sorted(types))}")
+  return dataclasses.replace(obj, **{n: _typed(f"{prefix}.{n}", x, types[n]) for n, x in d.items()})
+
+
 def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
-  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file; unknown keys and values of the wrong type
-  are one-line errors, retired keys (RETIRED_KEYS) are skipped at their old default and refused otherwise; an older
-  run's `fused_ekf` is read as ekf_kernel (`_FUSED_EKF`)."""
+  """TrainConfig from a (possibly partial) dict, e.g. a JSON config file: nested objects for sg, aa (PPOConfig) and
+  env (EnvConfig) replace only the fields they name; old top-level env keys (FLAT_ENV_KEYS) go into env; unknown keys
+  and values of the wrong type are one-line errors, retired keys (RETIRED_KEYS) are skipped at their old default and
+  refused otherwise."""
   base = base or TrainConfig()
   fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
-  kw = {}
-  if "fused_ekf" in d:
-    v = d["fused_ekf"]
-    if not isinstance(v, (bool, str)) or v not in _FUSED_EKF:
-      raise ValueError(f"config key 'fused_ekf' must be false, true, 'xla', 'lanes' or 'triton', got {v!r}")
-    d = {"ekf_kernel": _FUSED_EKF[v], **{k: x for k, x in d.items() if k != "fused_ekf"}}
+  kw, flat_env = {}, {}
   for k, v in d.items():
     if k in RETIRED_KEYS:
       accepted, why = RETIRED_KEYS[k]
       if v != accepted:
         raise ValueError(f"config key {k!r} = {v!r} is no longer supported ({why}); remove it")
       continue
+    if k == "fused_ekf":   # the EKF kernel before it was renamed ekf_kernel
+      if not isinstance(v, (bool, str)) or v not in _FUSED_EKF:
+        raise ValueError(f"config key 'fused_ekf' must be false, true, 'xla', 'lanes' or 'triton', got {v!r}")
+      v = _FUSED_EKF[v]
+    if k in FLAT_ENV_KEYS:
+      flat_env[FLAT_ENV_KEYS[k]] = v
+      continue
     if k not in fields:
       raise ValueError(f"unknown config key {k!r}; valid: {', '.join(sorted(fields))}")
-    if k in ("sg", "aa"):
-      if not isinstance(v, dict):
-        raise ValueError(f"config key {k!r} must be an object of PPO settings, got {v!r}")
-      sub = {f.name for f in dataclasses.fields(PPOConfig)}
-      bad = sorted(set(v) - sub)
-      if bad:
-        raise ValueError(f"unknown {k} PPO key(s) {', '.join(bad)}; valid: {', '.join(sorted(sub))}")
-      types = {f.name: str(f.type) for f in dataclasses.fields(PPOConfig)}
-      v = dataclasses.replace(getattr(base, k), **{n: _typed(f"{k}.{n}", x, types[n]) for n, x in v.items()})
+    if k in _NESTED:
+      v = _replace_typed(getattr(base, k), v, k)
     else:
       v = _typed(k, v, str(fields[k].type))
-      if isinstance(v, list):
-        v = tuple(v)
     kw[k] = v
+  if flat_env:
+    clash = sorted(k for k in flat_env if k in d.get("env", {}))
+    if clash:
+      raise ValueError(f"config key(s) {', '.join(clash)} given both at the top level and in env; keep env's")
+    kw["env"] = _replace_typed(kw.get("env", base.env), flat_env, "env")
   return dataclasses.replace(base, **kw)
+
+
+def nested(items: dict) -> dict:
+  """{"env.clearance": 6, "seed": 1} -> {"env": {"clearance": 6}, "seed": 1}: dotted keys (train.py's flags, --set,
+  --sweep) as from_dict's nested objects."""
+  d = {}
+  for k, v in items.items():
+    head, dot, field = k.partition(".")
+    if dot:
+      sub = d.setdefault(head, {})
+      if not isinstance(sub, dict):
+        raise ValueError(f"config key {head!r} set both whole and as {k!r}")
+      sub[field] = v
+    else:
+      d[k] = v
+  return d
 
 
 def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:

@@ -33,7 +33,7 @@ from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
-from specguard_jax.ppo.config import PPOConfig, TrainConfig, network_precision
+from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
 
 STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
              "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
@@ -54,21 +54,23 @@ class Carry:
 
 
 def trainer_env_options(detector: str = "none") -> dict:
-  """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"): no NaN
-  fallback (its AutoReset replaces a NaN-terminated env's state, EnvConfig.nan_fallback) and no EKF per-channel
-  records unless the detector reads them (detector 'residual', EnvConfig.ekf_records)."""
+  """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"; the
+  trainer's own come from config.env_config): no NaN fallback (its AutoReset replaces a NaN-terminated env's state,
+  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual',
+  EnvConfig.ekf_records)."""
   return dict(nan_fallback=False, ekf_records=detector == "residual")
 
 
+def _make(vehicle: str, config):
+  """The env of `vehicle` with EnvConfig `config` (every field of it, through envs.make's checks)."""
+  return envs_lib.make(vehicle, **{f.name: getattr(config, f.name) for f in dataclasses.fields(config)})
+
+
 def make_env(cfg: TrainConfig, phase: int):
-  """The unbatched env of a phase (phase 2 wrapped in AttackerEnv), with `trainer_env_options`."""
-  common = dict(worlds=tuple(cfg.worlds), reward=cfg.reward, override_frame="body", override_residual=cfg.residual,
-                ekf_kernel=cfg.ekf_kernel, unroll_ticks=cfg.unroll_ticks)
+  """The unbatched env of a phase (config.env_config(cfg, phase); phase 2 wrapped in AttackerEnv)."""
+  env = _make(cfg.vehicle, env_config(cfg, phase))
   if phase == 1:
-    return envs_lib.make(cfg.vehicle, control_mode="override", **trainer_env_options(), **common)
-  env = envs_lib.make(cfg.vehicle, control_mode="reactive" if cfg.variant == "rc" else "override",
-                      detector=cfg.detector, detector_delay=cfg.detector_delay,
-                      reconstruction=cfg.reconstruction, **trainer_env_options(cfg.detector), **common)
+    return env
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
@@ -223,7 +225,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 
   nets = functools.partial(network_precision, cfg.matmul_precision)   # the agents' networks only, not the env
   reset = jax.vmap(batched.reset)   # [G, B/G] keys -> G independent auto-reset groups
-  lanes = resolve_ekf_kernel(cfg.ekf_kernel) == "lanes"   # the env's EKF kernel: a Pallas call
+  lanes = resolve_ekf_kernel(cfg.env.ekf_kernel) == "lanes"   # the env's EKF kernel: a Pallas call
   step = group_step(batched, None if members else mesh, per_device=lanes)
   if lanes and not members:   # group_step's shard_map
     distributed.use_gspmd_for_shard_map(mesh)
@@ -422,15 +424,12 @@ class DeterministicPolicy:
 def eval_env(cfg: TrainConfig):
   """The deployment env of the run's variant (scripted attacks are given per episode by the evaluator). One object
   per distinct env setting, so a second held-out evaluation (e.g. after a resume) reuses the compiled rollout."""
-  return _eval_env(cfg.vehicle, tuple(cfg.worlds), cfg.reward, cfg.residual, cfg.variant, cfg.eval_detector,
-                   cfg.detector_delay, cfg.reconstruction)
+  return _eval_env(cfg.vehicle, env_config(cfg, "eval"))
 
 
 @functools.lru_cache(maxsize=8)
-def _eval_env(vehicle, worlds, reward, residual, variant, detector, detector_delay, reconstruction):
-  return envs_lib.make(vehicle, worlds=worlds, reward=reward, override_frame="body", override_residual=residual,
-                       control_mode="reactive" if variant == "rc" else "override", detector=detector,
-                       detector_delay=detector_delay, reconstruction=reconstruction)
+def _eval_env(vehicle, config):
+  return _make(vehicle, config)
 
 
 def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:

@@ -33,7 +33,7 @@ from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
-from specguard_jax.ppo.config import TrainConfig, from_dict
+from specguard_jax.ppo.config import TRAIN_ENV, TrainConfig, from_dict
 
 RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
 COMPILE_NOTE = "(first run takes a while; cached afterwards)"   # the persistent cache: specguard_jax.compile_cache
@@ -223,8 +223,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   # The env-group count and the EKF kernel fix the program (and the checkpoint's shapes: the kernel's P layout):
   # resolve them once and keep them in config.json, so a resume on another device count (dividing the groups)
   # continues the same run, and a resume where the kernel cannot run is a one-line error.
-  cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh),
-                            ekf_kernel=resolve_ekf_kernel(cfg.ekf_kernel))
+  cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh)).with_env(
+      ekf_kernel=resolve_ekf_kernel(cfg.env.ekf_kernel))
   if not resume and main:
     with open(os.path.join(run_dir, "config.json"), "w") as f:
       json.dump(cfg.to_dict(), f, indent=1)
@@ -425,7 +425,7 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
 def default_sizes(backend: str) -> dict:
   """Env count, step budgets and the networks' compute dtype for the backend. GPU: tens of thousands of envs and
   bfloat16 hidden layers in training (quicker at the same held-out quality, BENCHMARKS.md). CPU: hundreds of envs
-  and float32 (XLA:CPU has no fast bf16 matmuls). The EKF kernel is TrainConfig.ekf_kernel's "auto"
+  and float32 (XLA:CPU has no fast bf16 matmuls). The EKF kernel is TrainConfig.env.ekf_kernel's "auto"
   (ekf_lanes.resolve_ekf_kernel)."""
   if backend == "gpu":
     return dict(num_envs=16384, unroll_length=32, phase1_steps=30_000_000, phase2_steps=60_000_000,
