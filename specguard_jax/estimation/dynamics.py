@@ -135,7 +135,8 @@ def _fit(pos, vel, quat, rate, controls, f_meas, valid, dt, lam):
 
 def fit_dynamics(traces, dt: float = 0.02, source: str = "ekf", lam: float = 1e-3, airborne_only: bool = True
                  ) -> DynParams:
-  """Fit the model on attack-free traces (leaves [B, T, ...], see traces.record) by ridge least squares.
+  """Fit the model on attack-free traces (leaves [B, T, ...], `envs.record` of traces.RECORD_FIELDS) by ridge least
+  squares.
 
   source: 'ekf' (deployable: trusted estimates + accelerometer minus estimated bias) or 'truth'.
   airborne_only: drop ticks on the ground (contact forces are not in the model) -- samples with height < 0.5 m.

@@ -495,8 +495,8 @@ def recon_scan(cfg: ReconConfig, params: dyn.DynParams, ekf_states, readings, co
 
 
 def replay_under_attack(cfg: ReconConfig, params, ekf_cfg, trace, schedule, dt):
-  """Replay one recorded attack-free mission (estimation.traces.record, unbatched: leaves [T, ...]) with `schedule`
-  applied to its sensor stream and an oracle alarm (the attack window, diagnosis = its mask).
+  """Replay one recorded attack-free mission (envs.record of traces.RECORD_FIELDS, unbatched: leaves [T, ...]) with
+  `schedule` applied to its sensor stream and an oracle alarm (the attack window, diagnosis = its mask).
 
   Returns (x_ekf [T, 15] of a fresh EKF on the attacked readings, x_rec [T, 15] selective reconstruction,
   x_true [T, 15], alarm [T] bool).
