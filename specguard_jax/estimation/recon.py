@@ -332,8 +332,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   """One autopilot tick of dt (s).
 
   kernel: the shadow filter's tick, "xla" or "lanes" (ekf_lanes.ekf_step's, resolved: ekf_lanes.resolve_ekf_kernel;
-  "lanes" under vmap, dt a Python float): the same filter to float32 rounding. records: False leaves the shadow filter's per-channel records as they
-  were (ekf.ekf_step's `records`; an env whose detector does not read them, EnvConfig.ekf_records).
+  "lanes" under vmap, dt a Python float): the same filter to float32 rounding. records: False leaves the shadow
+  filter's per-channel records as they were (ekf.ekf_step's `records`; an env whose detector does not read them,
+  EnvConfig.ekf_records).
 
   gps_due: optional bool, the same for every vehicle (a Python bool, or [] unbatched under vmap): False on a tick where
   no GPS sample can be fresh (envs/base.py's schedule); the shadow filter then leaves the GPS rows out
