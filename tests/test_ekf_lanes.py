@@ -279,7 +279,7 @@ def test_resolve_ekf_kernel():
 def test_auto_picks_the_lanes_kernel_on_a_hopper_gpu(monkeypatch):
   """"auto" is the lanes kernel on a Hopper or newer GPU (faked here) with jax >= 0.11, XLA on older GPUs, with jax
   0.10 and on the CPU; train.py's default is "auto", --ekf-kernel xla turns the kernel off."""
-  import train as train_cli
+  from specguard_jax.cli import train as train_cli
 
   class Dev:
     device_kind, compute_capability = "NVIDIA H200", "9.0"

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import train as train_cli
+from specguard_jax.cli import train as train_cli
 from specguard_jax import evaluation, export
 from specguard_jax.ppo import attacker, config, iteration, losses, networks, runner
 
@@ -420,7 +420,7 @@ def test_old_flat_config_json_loads_into_env_and_resumes(tmp_path):
   assert (cfg.variant, cfg.eval_detector) == ("pc", "oracle")
   assert cfg.env == dataclasses.replace(config.TRAIN_ENV, worlds=("urban_park",), reward="binary",
                                         override_residual=False, reconstruction=False, detector="residual",
-                                        detector_delay=1.0, unroll_ticks=True)
+                                        detector_delay=1.0, unroll_ticks=True, ekf_kernel="xla")
   (tmp_path / "config.json").write_text(json.dumps(OLD_FLAT_CONFIG))
   assert runner.load_run_config(str(tmp_path)) == cfg
   assert controllers.load_run_config(str(tmp_path)) == cfg
