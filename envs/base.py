@@ -128,8 +128,10 @@ class EnvConfig:
   # "lanes" one Mosaic GPU kernel per tick for the whole vmapped batch (specguard_jax/ekf_lanes.py; NVIDIA Hopper or
   # newer; a vmapped env's batch must be on one device: the trainer shard_maps the step, ppo/iteration.group_step;
   # P kept packed, ekf_init(p_layout="packed")), the same filter to float32 rounding and several times quicker;
-  # "auto" the kernel where the device and jax support it, else XLA (ekf_lanes.resolve_ekf_kernel).
-  ekf_kernel: str = "auto"
+  # "auto" the kernel where the device and jax support it, else XLA (ekf_lanes.resolve_ekf_kernel). Default "xla":
+  # evaluation, calibration and fitting run the reference filter; the trainer's env asks for "auto"
+  # (ppo.config.TRAIN_ENV), a training speed setting.
+  ekf_kernel: str = "xla"
   # After a step whose physics went NaN, the env falls back to the previous (finite) data and sim. False: they are
   # left as the physics made them, for an env under envs.wrappers.AutoReset (the trainer's), which replaces every
   # finished env's whole state with a fresh one anyway; obs, reward, signals, STL monitor and episode record are

@@ -139,7 +139,6 @@ def load_run_config(run_dir: str):
 def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   """EnvConfig overrides of a run's deployment env (these fields of ppo.config.env_config(cfg, "eval"), without
   worlds/reward: the evaluation picks the worlds; the reward does not change what is flown)."""
-  from specguard_jax.ppo import config as config_lib
   ev = config_lib.env_config(cfg, "eval")
   rec = ev.reconstruction if reconstruction is None else reconstruction
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),

@@ -375,10 +375,10 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
   expected = {
       "default": (config.TrainConfig(), (
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="override",
-                    nan_fallback=False, ekf_records=False),
+                    nan_fallback=False, ekf_records=False, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
                     detector="oracle", detector_delay=0.5, reconstruction=True, nan_fallback=False,
-                    ekf_records=False),
+                    ekf_records=False, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
                     detector="residual", detector_delay=0.5, reconstruction=True))),
       "pc, residual, old flat config.json": (config.from_dict(OLD_FLAT_CONFIG), (

@@ -97,7 +97,7 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
   # In-sample statistics: per-mission max of the uncapped CUSUM S (k = 1), relative to the calibrated h.
   used = np.asarray(cfg.used) > 0
   q = float(np.clip(1.0 - target_fpr / max(1.0, float(np.asarray(base.used).sum())), 0.0, 1.0))
-  _, h_raw, max_s, n_fresh = jax.device_get(det._calibration_stats(jnp.asarray(r), jnp.asarray(fresh),
+  _, h_raw, max_s, n_fresh = jax.device_get(det.calibration_stats(jnp.asarray(r), jnp.asarray(fresh),
                                                                    base.k_quantile, q))
   score = np.asarray(max_s) / np.asarray(cfg.h)
   mission_score = np.max(np.where(used, score, 0.0), axis=-1)

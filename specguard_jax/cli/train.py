@@ -110,9 +110,9 @@ def parse_args(argv=None):
                help="the agents' network matmuls in training: default (f32; TF32 on NVIDIA GPUs) or bf16 inputs "
                     "with f32 accumulation (env, evaluation and ONNX export stay f32)")
   _config_flag(ap, "--network-dtype", key="network_dtype", choices=("float32", "bfloat16"),
-               help="the agents' networks' compute dtype in training: float32 (default) or bfloat16 (matmuls, "
-                    "bias adds and tanh in bf16; f32 parameters, optimizer and losses; evaluation and ONNX "
-                    "export stay f32)")
+               help="the agents' networks' compute dtype in training: float32 (the CPU's default) or bfloat16 "
+                    "(the GPU's: matmuls, bias adds and tanh in bf16; f32 parameters, optimizer and losses; "
+                    "evaluation and ONNX export stay f32)")
   _config_flag(ap, "--devices", key="num_devices", type=int,
                help="data-parallel devices (default 0: all of every process's)")
   _config_flag(ap, "--env-groups", key="env_groups", type=int,

@@ -724,7 +724,7 @@ def oracle_update(state: DetectorState, attack: attacks_lib.AttackSchedule, t, d
 
 
 @jax.jit
-def _calibration_stats(r, fresh, k_quantile, fpr_q):
+def calibration_stats(r, fresh, k_quantile, fpr_q):
   """r, fresh: [M, T, C] raw |residual| and feed mask of attack-free missions. Returns (scale [C], h_raw [C],
   max_s [M, C], n_fresh [C])."""
   n_fresh = jnp.sum(fresh, axis=(0, 1))
@@ -757,7 +757,7 @@ def calibrate(cfg: DetectorConfig, residual_traces, fresh, target_fpr: float = 0
   used = np.asarray(cfg.used, np.float32)
   n_used = max(1.0, float(used.sum()))
   q = float(np.clip(1.0 - target_fpr / n_used, 0.0, 1.0))
-  scale, h_raw, _, n_fresh = jax.device_get(_calibration_stats(jnp.asarray(residual_traces, jnp.float32),
+  scale, h_raw, _, n_fresh = jax.device_get(calibration_stats(jnp.asarray(residual_traces, jnp.float32),
                                                                jnp.asarray(fresh, bool), cfg.k_quantile, q))
   used = used * (np.asarray(n_fresh) > 0)
   h = np.maximum(cfg.h_min, cfg.h_margin * np.asarray(h_raw))

@@ -8,6 +8,7 @@ import json
 import jax
 
 from envs.base import EnvConfig
+from envs import worlds as worlds_lib
 from envs.worlds import DEFAULT_WORLDS
 from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
@@ -47,7 +48,7 @@ class PPOConfig:
 
 
 TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
-                      detector_delay=0.5, reconstruction=True, nan_fallback=False)
+                      detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto")
 """TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
 the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
 
@@ -143,7 +144,6 @@ class TrainConfig:
     return dataclasses.replace(self, env=dataclasses.replace(self.env, **kw))
 
   def validate(self):
-    from envs import worlds as worlds_lib
     env = self.env
     if not isinstance(env, EnvConfig):
       raise ValueError(f"env must be an envs.base.EnvConfig, got {type(env).__name__}")
@@ -270,6 +270,8 @@ def from_dict(d: dict, base: TrainConfig | None = None) -> TrainConfig:
         raise ValueError(f"config key {k!r} = {v!r} is no longer supported ({why}); remove it")
       continue
     if k == "fused_ekf":   # the EKF kernel before it was renamed ekf_kernel
+      if "ekf_kernel" in d:
+        raise ValueError("config keys 'fused_ekf' and 'ekf_kernel' both given; keep ekf_kernel")
       if not isinstance(v, (bool, str)) or v not in _FUSED_EKF:
         raise ValueError(f"config key 'fused_ekf' must be false, true, 'xla', 'lanes' or 'triton', got {v!r}")
       v = _FUSED_EKF[v]
