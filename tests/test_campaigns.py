@@ -177,9 +177,13 @@ def test_hard_suite_end_to_end(hard):
   h = [names.index("hazard/gps/overt"), names.index("hazard/gyro/overt")]
   np.testing.assert_array_equal(rec["onset"][rec["setting"] == h[0]], rec["onset"][rec["setting"] == h[1]])
   assert rep["meta"]["campaigns"] == ["long", "hazard", "designed", "multi"]
+  assert rep["meta"]["designed_rates"] == {"gps": 1.1, "gyro": 0.005}
 
 
-def test_designed_rates_flag():
+def test_designed_rates_flag(tmp_path):
   assert cli._parse_rates("gps=1.1,baro=nan", ("gps", "baro")) == {"gps": 1.1}
+  path = tmp_path / "designed_rates.json"
+  path.write_text(json.dumps({"gps": {"rate": 1.1, "feasible": True}, "mag": {"rate": None, "feasible": False}}))
+  assert cli._parse_rates(str(path), attacks.SENSOR_NAMES) == {"gps": 1.1}
   with pytest.raises(ValueError, match="unknown sensor"):
     cli._parse_rates("lidar=1", ("gps",))

@@ -275,7 +275,8 @@ def _parse_rates(spec: str, sensors) -> dict:
         raw = json.load(f)
     except (OSError, ValueError) as e:
       raise ValueError(f"--designed-rates {spec}: {' '.join(str(e).split())}") from None
-    raw = {k: (v.get("rate") if isinstance(v, dict) and v.get("feasible", True) else v) for k, v in raw.items()}
+    raw = {k: ((v.get("rate") if v.get("feasible", True) else None) if isinstance(v, dict) else v)
+           for k, v in raw.items()}
   else:
     raw = {}
     for item in _csv(spec):
@@ -297,26 +298,34 @@ def _parse_rates(spec: str, sensors) -> dict:
 
 
 def designed_settings(p: dict, group: dict, mission, max_s: float) -> tuple:
-  """The designed campaign's settings of a group: rates from --designed-rates, else <out>/designed_rates.json when
-  a previous run saved it, else designed against the group's detector (calibration.stealthy.design_rates) and saved."""
+  """The designed campaign's settings of a group: rates from --designed-rates, else from <out>/designed_rates.json
+  (a previous run's), designing the sensors it lacks against the group's detector (calibration.stealthy.design_rates)
+  and saving them there. Sensors without a feasible rate get no designed setting."""
   import json
 
+  from specguard_jax import attacks as attacks_lib
   from specguard_jax import evaluation as E
   sensors = group["designed"]
   rates = p["designed_rates"]
-  path = os.path.join(p["out"], "designed_rates.json")
-  if rates is None and os.path.isfile(path):
-    rates = _parse_rates(path, sensors)
   if rates is None:
-    from specguard_jax.calibration import stealthy
-    base = {"worlds": tuple(group["worlds"]), "max_episode_s": float(max_s), "detector": "residual"}
-    if mission is not None:
-      base["mission"] = mission
-    design = stealthy.design_rates(E.make_env(group["vehicle"], **base), sensors)
-    os.makedirs(p["out"], exist_ok=True)
-    with open(path, "w") as f:
-      json.dump({k: {kk: (vv if vv == vv else None) for kk, vv in v.items()} for k, v in design.items()}, f, indent=1)
-    rates = _parse_rates(path, sensors)
+    path = os.path.join(p["out"], "designed_rates.json")
+    saved = {}
+    if os.path.isfile(path):
+      with open(path) as f:
+        saved = json.load(f)
+    todo = [x for x in sensors if x not in saved]
+    if todo:
+      from specguard_jax.calibration import stealthy
+      base = {"worlds": tuple(group["worlds"]), "max_episode_s": float(max_s), "detector": "residual"}
+      if mission is not None:
+        base["mission"] = mission
+      design = stealthy.design_rates(E.make_env(group["vehicle"], **base), todo)
+      saved.update({k: {kk: (vv if vv == vv else None) for kk, vv in v.items()} for k, v in design.items()})
+      os.makedirs(p["out"], exist_ok=True)
+      with open(path, "w") as f:
+        json.dump(saved, f, indent=1)
+    rates = _parse_rates(path, attacks_lib.SENSOR_NAMES)
+  rates = {k: v for k, v in rates.items() if k in sensors}
   return E.campaign_settings(("designed",), sensors, designed_rates=rates)
 
 
@@ -415,6 +424,8 @@ def main(argv=None) -> int:
           "missions_per_setting": missions, "max_s": args.max_s, "mission_s": p["mission_s"], "run": args.run,
           "runs": p["runs"], "suite": args.suite, "profiles": list(p["profiles"]),
           "campaigns": list(p["campaigns"]), "hazard_lead_s": list(p["hazard_lead_s"]),
+          "designed_rates": {x: r for g in p["groups"].values() for st in g["settings"]
+                             if E.campaign_of(st.name) == "designed" for x, r in st.attack.ramp_rate},
           "simulator": "specguard-jax MJX simulator (not AirSim)"}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
