@@ -11,7 +11,14 @@ Grammar (loosest binding first; `->` is right-associative, `until` left-associat
   interval  := '[' bound (',' | ':') bound ']'      bound := number | PARAM, optionally followed by a unit
 Interval units: none = control steps (integers); 's' or 'ms' = seconds, converted to steps later with an explicit dt
 (`ast.to_steps`). As in rtamt, a unit written on one bound only applies to both. Identifiers found in `params` are
-constants (in expressions and interval bounds); every other identifier is a signal name.
+constants (in expressions and interval bounds); every other identifier is a signal name, except `inf`, `nan` and
+`infinity` (any case), which are refused like every constant that is not a finite float64 (1e999) and every
+predicate whose coefficients or offset overflow.
+
+Limits (stl.ast): texts of at most MAX_TEXT_CHARS characters, ast.MAX_DEPTH nested levels, ast.MAX_NODES nodes and
+step intervals of at most ast.MAX_WINDOW_STEPS steps (seconds intervals are checked once converted, `ast.to_steps`);
+beyond them parse raises FormulaSizeError / IntervalError naming the position. The parser recurses once per nested
+level, so the depth limit also bounds its Python stack; and / or chains are built as balanced trees.
 """
 
 from __future__ import annotations
@@ -21,13 +28,17 @@ import re
 from typing import Iterable, List, Mapping, Optional, Tuple
 
 from specguard_jax.stl import ast
-from specguard_jax.stl.errors import IntervalError, STLError, STLSyntaxError, UnknownSignalError
+from specguard_jax.stl.errors import FormulaSizeError, IntervalError, STLError, STLSyntaxError, UnknownSignalError
+
+MAX_TEXT_CHARS = 200_000
+"""Longest STL text accepted (characters); it bounds the token list built before parsing."""
 
 _TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<id>[A-Za-z_][A-Za-z0-9_.]*)"
                     r"|(?P<op>->|>=|<=|&&|\|\||[()\[\],:+\-*/<>!&|]))")
 _KEYWORDS = {"not", "and", "or", "implies", "always", "eventually", "until"}
 _CMP = {">", ">=", "<", "<="}
 _UNITS = {"s": ("s", 1.0), "ms": ("s", 1e-3), "step": ("steps", 1.0), "steps": ("steps", 1.0)}
+_NON_FINITE_NAMES = {"inf", "nan", "infinity"}
 
 
 def _tokenize(text: str) -> List[Tuple[str, str, int]]:
@@ -57,6 +68,32 @@ class _Parser:
     self.i = 0
     self.params = dict(params)
     self.signals = None if signals is None else set(signals)
+    self.depth = 0   # current nesting (levels opened by '(', 'not', temporal operators, '->', unary signs)
+    self.nodes = 0   # tree nodes built so far
+    self.closing = _matching_parens(self.toks)
+
+  # --- size limits ---
+  def enter(self):
+    """Open one nesting level at the current token (before recursing into it)."""
+    self.depth += 1
+    if self.depth > ast.MAX_DEPTH:
+      self.fail(f"formula nests more than {ast.MAX_DEPTH} levels deep (the maximum; parentheses, 'not', temporal "
+                "operators, '->' and unary signs each open a level)", cls=FormulaSizeError)
+
+  def node(self, f):
+    """Count one tree node; returns it."""
+    self.nodes += 1
+    if self.nodes > ast.MAX_NODES:
+      self.fail(f"formula has more than {ast.MAX_NODES} nodes (predicates and operators; the maximum)",
+                cls=FormulaSizeError)
+    return f
+
+  def balanced(self, cls, items):
+    """items[0] op items[1] op ... as a balanced tree (op associative: min / max), left-nested for 3 items."""
+    while len(items) > 1:
+      pairs = [self.node(cls(items[k], items[k + 1])) for k in range(0, len(items) - 1, 2)]
+      items = pairs + items[len(pairs) * 2:]
+    return items[0]
 
   # --- token helpers ---
   def peek(self, k: int = 0):
@@ -76,8 +113,11 @@ class _Parser:
       self.fail(f"expected {what}")
     return self.take()
 
-  def fail(self, problem: str, pos: Optional[int] = None):
-    raise STLSyntaxError(self.text, self.peek()[2] if pos is None else pos, problem)
+  def fail(self, problem: str, pos: Optional[int] = None, cls=STLSyntaxError):
+    pos = self.peek()[2] if pos is None else pos
+    if cls is STLSyntaxError:
+      raise STLSyntaxError(self.text, pos, problem)
+    raise cls(f"STL formula too large at position {pos}: {problem}")
 
   # --- formulas ---
   def parse(self) -> ast.Formula:
@@ -86,35 +126,41 @@ class _Parser:
     f = self.formula()
     if self.peek()[0] != "end":
       self.fail("unexpected token after a complete formula")
+    ast.check_size(f)   # until chains nest without parser recursion
+    if not ast.has_seconds(f) and ast.window_span(f) > ast.MAX_WINDOW_STEPS:
+      raise ast.window_error(f"the nested windows of {self.text[:80]!r}", ast.window_span(f))
     return f
 
   def formula(self):
     left = self.or_()
     if self.at("->", "implies"):
       self.take()
-      return ast.Implies(left, self.formula())
+      self.enter()
+      right = self.formula()
+      self.depth -= 1
+      return self.node(ast.Implies(left, right))
     return left
 
   def or_(self):
-    f = self.and_()
+    items = [self.and_()]
     while self.at("or", "||", "|"):
       self.take()
-      f = ast.Or(f, self.and_())
-    return f
+      items.append(self.and_())
+    return self.balanced(ast.Or, items)
 
   def and_(self):
-    f = self.until()
+    items = [self.until()]
     while self.at("and", "&&", "&"):
       self.take()
-      f = ast.And(f, self.until())
-    return f
+      items.append(self.until())
+    return self.balanced(ast.And, items)
 
   def until(self):
     f = self.unary()
     while self.at("until"):
       self.take()
       iv = self.interval() if self.at("[") else None
-      f = ast.Until(f, self.unary(), iv)
+      f = self.node(ast.Until(f, self.unary(), iv))
     return f
 
   def _is_temporal_kw(self, names) -> bool:
@@ -125,17 +171,25 @@ class _Parser:
 
   def unary(self):
     if self.at("not", "!"):
+      self.enter()
       self.take()
-      return ast.Not(self.unary())
+      f = self.node(ast.Not(self.unary()))
+      self.depth -= 1
+      return f
     for names, cls in ((("always", "G"), ast.Always), (("eventually", "F"), ast.Eventually)):
       if self._is_temporal_kw(names):
+        self.enter()
         self.take()
         iv = self.interval() if self.at("[") else None
-        return cls(self.unary(), iv)
+        f = self.node(cls(self.unary(), iv))
+        self.depth -= 1
+        return f
     if self.at("(") and not self._paren_is_arith():
+      self.enter()
       self.take()
       f = self.formula()
       self.expect(")", "')' closing the parenthesised formula")
+      self.depth -= 1
       return f
     kind, val, pos = self.peek()
     if kind == "end":
@@ -148,19 +202,11 @@ class _Parser:
 
   def _paren_is_arith(self) -> bool:
     """At '(': is it an arithmetic group (the matching ')' is followed by a comparison or arithmetic operator)?"""
-    depth, j = 0, self.i
-    while True:
-      kind, val, pos = self.toks[j]
-      if kind == "end":
-        self.fail("unbalanced '(': no matching ')'")
-      if val == "(" and kind == "op":
-        depth += 1
-      elif val == ")" and kind == "op":
-        depth -= 1
-        if depth == 0:
-          nxt = self.toks[j + 1]
-          return nxt[0] == "op" and nxt[1] in _CMP | {"+", "-", "*", "/"}
-      j += 1
+    j = self.closing.get(self.i)
+    if j is None:
+      self.fail("unbalanced '(': no matching ')'")
+    nxt = self.toks[j + 1]
+    return nxt[0] == "op" and nxt[1] in _CMP | {"+", "-", "*", "/"}
 
   # --- predicates and affine expressions: (coefs dict, constant) ---
   def predicate(self):
@@ -177,11 +223,13 @@ class _Parser:
       coefs, const = _sub(lhs, rhs)
     else:
       coefs, const = _sub(rhs, lhs)
+    if not all(math.isfinite(v) for v in (const, *coefs.values())):
+      self.fail("the predicate's coefficients or constant overflow float64 (not finite)", start)
     terms = tuple((n, c) for n, c in sorted(coefs.items()) if c != 0.0)
     if not terms:
       self.fail("the predicate compares constants only: it must mention a signal", start)
     text = "" if self.used_param else " ".join(self.text[start:end].split())  # keep str() re-parseable
-    return ast.Predicate(terms, const, text)
+    return self.node(ast.Predicate(terms, const, text))
 
   def affine(self):
     acc = self.term()
@@ -210,30 +258,37 @@ class _Parser:
 
   def factor(self):
     kind, val, pos = self.peek()
-    if self.at("-"):
+    if self.at("-", "+", "("):
+      self.enter()
       self.take()
-      return _scale(self.factor(), -1.0)
-    if self.at("+"):
-      self.take()
-      return self.factor()
-    if self.at("("):
-      self.take()
-      e = self.affine()
-      self.expect(")", "')' closing the parenthesised expression")
+      if val == "(":
+        e = self.affine()
+        self.expect(")", "')' closing the parenthesised expression")
+      else:
+        e = self.factor() if val == "+" else _scale(self.factor(), -1.0)
+      self.depth -= 1
       return e
     if kind == "num":
       self.take()
-      return ({}, float(val))
+      return ({}, self.finite(val, pos))
     if kind == "id" and val not in _KEYWORDS:
       self.take()
       if val in self.params:
         self.used_param = True
         return ({}, float(self.params[val]))
+      if val.lower() in _NON_FINITE_NAMES:
+        self.fail(f"{val!r} is not a finite constant (and not a usable signal name)", pos)
       if self.signals is not None and val not in self.signals:
         raise UnknownSignalError(f"unknown signal {val!r} at position {pos} of {self.text!r} "
                                  f"(known: {', '.join(sorted(self.signals))})")
       return ({val: 1.0}, 0.0)
     self.fail("expected a number, a signal name or '('")
+
+  def finite(self, token: str, pos: int) -> float:
+    v = float(token)
+    if not math.isfinite(v):
+      self.fail(f"constant {token[:24]!r} is not a finite float64", pos)
+    return v
 
   # --- intervals ---
   def interval(self) -> ast.Interval:
@@ -259,6 +314,8 @@ class _Parser:
     if unit == "steps" and not (float(lo).is_integer() and float(hi).is_integer()):
       raise IntervalError(f"interval {self.text[start:self.peek()[2]]!r} at position {start}: step bounds must be "
                           "integers (write seconds with a unit, e.g. [0s, 2.5s])")
+    if unit == "steps" and hi > ast.MAX_WINDOW_STEPS:
+      raise ast.window_error(f"interval {self.text[start:self.peek()[2]].strip()!r} at position {start}", hi)
     return ast.Interval(float(lo), float(hi), unit)
 
   def bound(self):
@@ -270,7 +327,7 @@ class _Parser:
       kind, val, pos = self.peek()
     if kind == "num":
       self.take()
-      v = float(val)
+      v = self.finite(val, pos)
     elif kind == "id" and val in self.params:
       self.take()
       v = float(self.params[val])
@@ -284,6 +341,17 @@ class _Parser:
     if self.peek()[0] == "id" and self.peek()[1] in _UNITS:
       unit = _UNITS[self.take()[1]]
     return sign * v, unit
+
+
+def _matching_parens(toks) -> dict:
+  """{index of '(': index of its ')'} over a token list (unmatched '(' are absent), in one pass."""
+  out, open_ = {}, []
+  for j, (kind, val, _) in enumerate(toks):
+    if kind == "op" and val == "(":
+      open_.append(j)
+    elif kind == "op" and val == ")" and open_:
+      out[open_.pop()] = j
+  return out
 
 
 def _add(a, b):
@@ -310,4 +378,20 @@ def parse(text: str, params: Optional[Mapping[str, float]] = None,
   """
   if not isinstance(text, str):
     raise STLError(f"STL text must be a str, got {type(text).__name__}")
-  return _Parser(text, params or {}, signals).parse()
+  if len(text) > MAX_TEXT_CHARS:
+    raise FormulaSizeError(f"STL text of {len(text)} characters is longer than the maximum {MAX_TEXT_CHARS}")
+  return _Parser(text, _check_params(params or {}), signals).parse()
+
+
+def _check_params(params: Mapping[str, float]) -> Mapping[str, float]:
+  """`params` as {name: float}; raises STLError naming a value that is not a finite real number."""
+  out = {}
+  for name, value in params.items():
+    try:
+      v = float(value)
+    except (TypeError, ValueError, OverflowError):
+      raise STLError(f"STL parameter {name!r}: value {value!r} is not a number") from None
+    if isinstance(value, bool) or not math.isfinite(v):
+      raise STLError(f"STL parameter {name!r}: value {value!r} is not a finite number")
+    out[name] = v
+  return out
