@@ -127,8 +127,10 @@ def resolve(defs: Mapping[str, ParamDef], overrides: Optional[Mapping[str, float
 def decode_text(data: bytes) -> str:
   """Text of a parameter or spec file: UTF-8 (a leading byte-order mark dropped), else Latin-1, which decodes any
   byte (comments written by old Windows tools); the readers then refuse non-ASCII outside comments."""
+  if data.startswith(b"\xef\xbb\xbf"):
+    data = data[3:]
   try:
-    return data.decode("utf-8-sig")
+    return data.decode("utf-8")
   except UnicodeDecodeError:
     return data.decode("latin-1")
 
@@ -168,7 +170,7 @@ def loads_params(text: Union[str, bytes], fmt: str = "params", known: Optional[I
   if fmt not in ("params", "parm"):
     raise SpecError(f"parameter file format must be 'params' or 'parm', got {fmt!r}")
   known = set(DRONE_PARAMS) | set(ROVER_PARAMS) if known is None else set(known)
-  text = decode_text(text) if isinstance(text, bytes) else text
+  text = decode_text(text) if isinstance(text, bytes) else text.removeprefix("\ufeff")
   out: Dict[str, float] = {}
   seen: Dict[tuple, tuple] = {}   # key -> (line, raw value) of its first setting
   lines: Dict[str, int] = {}

@@ -5,9 +5,10 @@ converts every interval to control steps with an explicit step length `dt` (seco
 
 Size limits, the same on every route (the parser refuses a formula beyond them, `to_steps` and `check_size` one built
 in Python), so a formula that is accepted also works in the offline robustness, the online monitor and the spec tables:
-  * MAX_DEPTH nested levels: every node of the tree is one level, and in the text every parenthesis, 'not', temporal
-    operator, '->' and unary sign opens one. The engine walks formulas recursively (a few Python frames per level);
-    and / or chains are stored as balanced trees, so a chain of n terms is only about log2(n) levels deep.
+  * MAX_DEPTH levels of tree: every node is one level below its parent. The engine walks formulas recursively (a few
+    Python frames per level); the parser builds and / or chains as balanced trees, so a chain of n terms is only about
+    log2(n) levels deep. (The text's own nesting is bounded by parser.MAX_NESTING, about twice MAX_DEPTH, so that
+    str() of any accepted formula parses again.)
   * MAX_NODES tree nodes (predicates and operators).
   * MAX_WINDOW_STEPS control steps for every interval bound and for the span of nested windows (the summed upper
     bounds along any path of the tree, `window_span`): the online monitor keeps span + 1 samples of every signal per
@@ -22,8 +23,8 @@ from typing import Optional, Tuple, Union
 
 from specguard_jax.stl.errors import FormulaSizeError, IntervalError, UnknownSignalError
 
-MAX_DEPTH = 100
-"""Deepest formula nesting accepted (levels; see the module docstring)."""
+MAX_DEPTH = 64
+"""Deepest formula tree accepted (levels; see the module docstring)."""
 MAX_NODES = 4096
 """Most tree nodes (predicates + operators) in one formula."""
 MAX_WINDOW_STEPS = 1000

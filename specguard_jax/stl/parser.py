@@ -15,10 +15,11 @@ constants (in expressions and interval bounds); every other identifier is a sign
 `infinity` (any case), which are refused like every constant that is not a finite float64 (1e999) and every
 predicate whose coefficients or offset overflow.
 
-Limits (stl.ast): texts of at most MAX_TEXT_CHARS characters, ast.MAX_DEPTH nested levels, ast.MAX_NODES nodes and
-step intervals of at most ast.MAX_WINDOW_STEPS steps (seconds intervals are checked once converted, `ast.to_steps`);
-beyond them parse raises FormulaSizeError / IntervalError naming the position. The parser recurses once per nested
-level, so the depth limit also bounds its Python stack; and / or chains are built as balanced trees.
+Limits: texts of at most MAX_TEXT_CHARS characters nesting at most MAX_NESTING levels, trees of at most ast.MAX_DEPTH
+levels and ast.MAX_NODES nodes, step intervals of at most ast.MAX_WINDOW_STEPS steps (seconds intervals are checked
+once converted, `ast.to_steps`); beyond them parse raises FormulaSizeError / IntervalError naming the position. The
+parser recurses only into parentheses and prefix operators (at most two Python frames per level), so MAX_NESTING also
+bounds its stack; binary operators are one loop and and / or chains become balanced trees.
 """
 
 from __future__ import annotations
@@ -32,6 +33,10 @@ from specguard_jax.stl.errors import FormulaSizeError, IntervalError, STLError, 
 
 MAX_TEXT_CHARS = 200_000
 """Longest STL text accepted (characters); it bounds the token list built before parsing."""
+MAX_NESTING = 2 * ast.MAX_DEPTH + 16
+"""Deepest nesting of the text (levels: parentheses, 'not', temporal operators, unary signs). The parser recurses at
+most twice per level; str() of a formula of depth MAX_DEPTH nests up to 2 * MAX_DEPTH + _PREDICATE_TEXT_NESTING."""
+_PREDICATE_TEXT_NESTING = 8
 
 _TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<id>[A-Za-z_][A-Za-z0-9_.]*)"
                     r"|(?P<op>->|>=|<=|&&|\|\||[()\[\],:+\-*/<>!&|]))")
@@ -68,24 +73,32 @@ class _Parser:
     self.i = 0
     self.params = dict(params)
     self.signals = None if signals is None else set(signals)
-    self.depth = 0   # current nesting (levels opened by '(', 'not', temporal operators, '->', unary signs)
-    self.nodes = 0   # tree nodes built so far
+    self.depth = 0     # current nesting of the text (levels opened by '(', 'not', temporal operators, unary signs)
+    self.deepest = 0   # the deepest nesting reached so far
+    self.nodes = 0     # tree nodes built so far
+    self.levels = {}   # id(node) -> depth of the tree below it (1 for a predicate)
     self.closing = _matching_parens(self.toks)
 
   # --- size limits ---
   def enter(self):
-    """Open one nesting level at the current token (before recursing into it)."""
+    """Open one nesting level of the text at the current token (before recursing into it)."""
     self.depth += 1
-    if self.depth > ast.MAX_DEPTH:
-      self.fail(f"formula nests more than {ast.MAX_DEPTH} levels deep (the maximum; parentheses, 'not', temporal "
-                "operators, '->' and unary signs each open a level)", cls=FormulaSizeError)
+    self.deepest = max(self.deepest, self.depth)
+    if self.depth > MAX_NESTING:
+      self.fail(f"text nests more than {MAX_NESTING} levels deep (the maximum; parentheses, 'not', temporal "
+                "operators and unary signs each open a level)", cls=FormulaSizeError)
 
   def node(self, f):
-    """Count one tree node; returns it."""
+    """Count one tree node and check the tree's depth below it; returns it."""
     self.nodes += 1
     if self.nodes > ast.MAX_NODES:
       self.fail(f"formula has more than {ast.MAX_NODES} nodes (predicates and operators; the maximum)",
                 cls=FormulaSizeError)
+    d = 1 + max((self.levels[id(c)] for c in ast.children(f)), default=0)
+    if d > ast.MAX_DEPTH:
+      self.fail(f"formula tree nests more than {ast.MAX_DEPTH} levels deep (the maximum; every operator is a level, "
+                "an and / or chain of n terms about log2(n))", cls=FormulaSizeError)
+    self.levels[id(f)] = d
     return f
 
   def balanced(self, cls, items):
@@ -126,42 +139,47 @@ class _Parser:
     f = self.formula()
     if self.peek()[0] != "end":
       self.fail("unexpected token after a complete formula")
-    ast.check_size(f)   # until chains nest without parser recursion
     if not ast.has_seconds(f) and ast.window_span(f) > ast.MAX_WINDOW_STEPS:
       raise ast.window_error(f"the nested windows of {self.text[:80]!r}", ast.window_span(f))
     return f
 
   def formula(self):
-    left = self.or_()
-    if self.at("->", "implies"):
-      self.take()
-      self.enter()
-      right = self.formula()
-      self.depth -= 1
-      return self.node(ast.Implies(left, right))
-    return left
+    """Binary operators by precedence ('->' < or < and < until) in one loop over operand / operator stacks, so only
+    parentheses and prefix operators recurse: '->' is right-associative, until left-associative, and / or chains
+    are collected and built as balanced trees."""
+    operands, ops = [self.unary()], []   # ops: (precedence, name, interval)
+    while True:
+      op = self._binary_op()
+      while ops and (ops[-1][0] > op[0] or (ops[-1][0] == op[0] and op[1] == "until")):
+        self._reduce(operands, ops)
+      if op[1] == "end":
+        return operands[0]
+      ops.append(op)
+      operands.append(self.unary())
 
-  def or_(self):
-    items = [self.and_()]
-    while self.at("or", "||", "|"):
-      self.take()
-      items.append(self.and_())
-    return self.balanced(ast.Or, items)
+  def _binary_op(self):
+    """The binary operator at the current token, taken (with an until's interval), else (-1, 'end', None)."""
+    for prec, name, spellings in ((0, "implies", ("->", "implies")), (1, "or", ("or", "||", "|")),
+                                  (2, "and", ("and", "&&", "&")), (3, "until", ("until",))):
+      if self.at(*spellings):
+        self.take()
+        return prec, name, (self.interval() if name == "until" and self.at("[") else None)
+    return -1, "end", None
 
-  def and_(self):
-    items = [self.until()]
-    while self.at("and", "&&", "&"):
-      self.take()
-      items.append(self.until())
-    return self.balanced(ast.And, items)
-
-  def until(self):
-    f = self.unary()
-    while self.at("until"):
-      self.take()
-      iv = self.interval() if self.at("[") else None
-      f = self.node(ast.Until(f, self.unary(), iv))
-    return f
+  def _reduce(self, operands, ops):
+    """Pop the top operator (for and / or: the whole chain of it on top) and its operands; push the node."""
+    prec, name, iv = ops.pop()
+    if name in ("and", "or"):
+      k = 1
+      while ops and ops[-1][1] == name:
+        ops.pop()
+        k += 1
+      items = operands[-k - 1:]
+      del operands[-k - 1:]
+      operands.append(self.balanced(ast.And if name == "and" else ast.Or, items))
+      return
+    right, left = operands.pop(), operands.pop()
+    operands.append(self.node(ast.Implies(left, right) if name == "implies" else ast.Until(left, right, iv)))
 
   def _is_temporal_kw(self, names) -> bool:
     kind, val, _ = self.peek()
@@ -212,6 +230,7 @@ class _Parser:
   def predicate(self):
     start = self.peek()[2]
     self.used_param = False
+    self.deepest = base = self.depth
     lhs = self.affine()
     kind, op, pos = self.peek()
     if not (kind == "op" and op in _CMP):
@@ -228,33 +247,34 @@ class _Parser:
     terms = tuple((n, c) for n, c in sorted(coefs.items()) if c != 0.0)
     if not terms:
       self.fail("the predicate compares constants only: it must mention a signal", start)
-    text = "" if self.used_param else " ".join(self.text[start:end].split())  # keep str() re-parseable
+    # The source text is kept for printing unless it used parameters or nests deeply (str() must re-parse within
+    # MAX_NESTING: the canonical form nests 2 levels).
+    plain = not self.used_param and self.deepest - base <= _PREDICATE_TEXT_NESTING
+    text = " ".join(self.text[start:end].split()) if plain else ""
     return self.node(ast.Predicate(terms, const, text))
 
   def affine(self):
-    acc = self.term()
-    while self.at("+", "-"):
-      op = self.take()[1]
-      t = self.term()
-      acc = _add(acc, t) if op == "+" else _sub(acc, t)
-    return acc
-
-  def term(self):
-    acc = self.factor()
-    while self.at("*", "/"):
-      op, pos = self.take()[1:]
-      rhs = self.factor()
-      if op == "*":
-        if acc[0] and rhs[0]:
-          self.fail("product of two signals: predicates must be affine in the signals", pos)
-        acc = _scale(rhs, acc[1]) if not acc[0] else _scale(acc, rhs[1])
-      else:
-        if rhs[0]:
-          self.fail("division by a signal: predicates must be affine in the signals", pos)
-        if rhs[1] == 0:
-          self.fail("division by zero", pos)
-        acc = _scale(acc, 1.0 / rhs[1])
-    return acc
+    """A sum of products of factors, in one loop (a parenthesised group recurses through factor only)."""
+    acc, sign = None, "+"
+    while True:
+      t = self.factor()
+      while self.at("*", "/"):
+        op, pos = self.take()[1:]
+        rhs = self.factor()
+        if op == "*":
+          if t[0] and rhs[0]:
+            self.fail("product of two signals: predicates must be affine in the signals", pos)
+          t = _scale(rhs, t[1]) if not t[0] else _scale(t, rhs[1])
+        else:
+          if rhs[0]:
+            self.fail("division by a signal: predicates must be affine in the signals", pos)
+          if rhs[1] == 0:
+            self.fail("division by zero", pos)
+          t = _scale(t, 1.0 / rhs[1])
+      acc = t if acc is None else (_add(acc, t) if sign == "+" else _sub(acc, t))
+      if not self.at("+", "-"):
+        return acc
+      sign = self.take()[1]
 
   def factor(self):
     kind, val, pos = self.peek()
