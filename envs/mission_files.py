@@ -37,11 +37,10 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
-
-import warnings
 
 from envs.base import EnvConfig
 from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, mission_timing

@@ -38,11 +38,13 @@ def _one_line(err):
 
 STL_BAD = [
     # (case, text, params, error, message pattern)
-    ("200 nested parens", "(" * 200 + "x > 0" + ")" * 200, None, stl.FormulaSizeError, "position 144: text nests more than 144 levels"),
+    ("200 nested parens", "(" * 200 + "x > 0" + ")" * 200, None, stl.FormulaSizeError,
+     "position 144: text nests more than 144 levels"),
     ("5000 nested parens", "(" * 5000 + "x > 0" + ")" * 5000, None, stl.FormulaSizeError, "144 levels"),
     ("500 nots", "not " * 500 + "x > 0", None, stl.FormulaSizeError, "position 576: text nests"),
     ("300 implications", "x > 0 -> " * 300 + "x > 0", None, stl.FormulaSizeError, "tree nests more than 64 levels"),
-    ("300-term until chain", " until ".join(["x > 0"] * 300), None, stl.FormulaSizeError, r"position \d+: formula tree"),
+    ("300-term until chain", " until ".join(["x > 0"] * 300), None, stl.FormulaSizeError,
+     r"position \d+: formula tree"),
     ("100 nots", "not " * 100 + "x > 0", None, stl.FormulaSizeError, "tree nests more than 64 levels"),
     ("2000 unary minus", "- " * 2000 + "x > 0", None, stl.FormulaSizeError, "position 288: text nests"),
     ("300 arithmetic parens", "(" * 300 + "x + 1" + ")" * 300 + " > 0", None, stl.FormulaSizeError, "144 levels"),
@@ -126,7 +128,7 @@ def test_formulas_at_the_limits_work_at_every_later_use():
 def test_long_chain_spec_compiles_and_monitors():
   table = specs.add_spec(specs.drone_specs(), "S13", "always(" + " and ".join(["altitude > 1"] * 1000) + ")")
   ev = specs.compile_specs(table, 0.1)
-  state, rob, _ = ev.monitor_update(ev.monitor_init(()), {n: jnp.float32(5.0) for n in ev.signals})
+  _, rob, _ = ev.monitor_update(ev.monitor_init(()), {n: jnp.float32(5.0) for n in ev.signals})
   assert rob.shape == (13,) and float(rob[-1]) == 4.0
 
 
@@ -192,7 +194,8 @@ PARAMS_BAD = [
     ("1e999", "CP_DIST,1e999\n", "parm", "not finite"),
     ("unknown inf", "FOO,inf\n", "parm", r"FOO \(p:1\).*not finite"),
     ("min speed above max", "1\t1\tMPC_XY_VEL_MIN\t15\t9\n1\t1\tMPC_XY_VEL_MAX\t12\t9\n", "params",
-     r"p: contradictory parameters: MPC_XY_VEL_MIN = 15 m/s \(line 1\) must be below MPC_XY_VEL_MAX = 12 m/s \(line 2\)"),
+     r"p: contradictory parameters: MPC_XY_VEL_MIN = 15 m/s \(line 1\) must be below MPC_XY_VEL_MAX = 12 m/s "
+     r"\(line 2\)"),
     ("rover min above max", "CRUISE_SPEED_MIN,9\nCRUISE_SPEED_MAX,8\n", "parm", "CRUISE_SPEED_MIN = 9 m/s"),
 ]
 
