@@ -7,7 +7,7 @@ Size limits, the same on every route (the parser refuses a formula beyond them, 
 in Python), so a formula that is accepted also works in the offline robustness, the online monitor and the spec tables:
   * MAX_DEPTH levels of tree: every node is one level below its parent. The engine walks formulas recursively (a few
     Python frames per level); the parser builds and / or chains as balanced trees, so a chain of n terms is only about
-    log2(n) levels deep. (The text's own nesting is bounded by parser.MAX_NESTING, about twice MAX_DEPTH, so that
+    log2(n) levels deep. (The text's own nesting is bounded by parser.MAX_NESTING, about 3 x MAX_DEPTH, so that
     str() of any accepted formula parses again.)
   * MAX_NODES tree nodes (predicates and operators).
   * MAX_WINDOW_STEPS control steps for every interval bound and for the span of nested windows (the summed upper
@@ -23,7 +23,7 @@ from typing import Optional, Tuple, Union
 
 from specguard_jax.stl.errors import FormulaSizeError, IntervalError, UnknownSignalError
 
-MAX_DEPTH = 64
+MAX_DEPTH = 32
 """Deepest formula tree accepted (levels; see the module docstring)."""
 MAX_NODES = 4096
 """Most tree nodes (predicates + operators) in one formula."""

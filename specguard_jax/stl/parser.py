@@ -33,9 +33,10 @@ from specguard_jax.stl.errors import FormulaSizeError, IntervalError, STLError, 
 
 MAX_TEXT_CHARS = 200_000
 """Longest STL text accepted (characters); it bounds the token list built before parsing."""
-MAX_NESTING = 2 * ast.MAX_DEPTH + 16
+MAX_NESTING = 3 * ast.MAX_DEPTH + 16
 """Deepest nesting of the text (levels: parentheses, 'not', temporal operators, unary signs). The parser recurses at
-most twice per level; str() of a formula of depth MAX_DEPTH nests up to 2 * MAX_DEPTH + _PREDICATE_TEXT_NESTING."""
+most twice per level; str() of a formula of depth MAX_DEPTH nests up to 3 * MAX_DEPTH + 1 + _PREDICATE_TEXT_NESTING
+levels (a temporal operator prints as three: '(always[a,b](' ... '))')."""
 _PREDICATE_TEXT_NESTING = 8
 
 _TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<id>[A-Za-z_][A-Za-z0-9_.]*)"
