@@ -94,6 +94,19 @@ def test_second_windows_are_checked_with_dt(text, params, pattern):
     _one_line(e)
 
 
+def test_formulas_built_in_python_are_checked_too():
+  deep = stl.parse("x > 0")
+  for _ in range(1000):
+    deep = stl.Not(deep)
+  with pytest.raises(stl.FormulaSizeError, match="more than 32 levels"):
+    stl.robustness(deep, {"x": np.zeros(3)})
+  long = stl.Always(stl.parse("x > 0"), stl.Interval(0, 5000))
+  with pytest.raises(stl.IntervalError, match="5,000 steps"):
+    stl.OnlineMonitor(long).init(())
+  with pytest.raises(stl.IntervalError, match="5,000 steps"):
+    stl.robustness(long, {"x": np.zeros(3)})
+
+
 def _later_uses(f, dt=0.1):
   """Every later use of a parsed formula: str / hash, offline robustness (eager and jitted), the online monitor."""
   assert stl.parse(str(f)) == f and hash(f) == hash(stl.parse(str(f)))
