@@ -254,8 +254,9 @@ class RAVEnv(Env):
       n_u = 4 if self.vehicle == "drone" else 2
       self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)
       self.recon_cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg)
-    if config.recovery_rule == "fallback":   # margin: the collision spec's (S1: CP_DIST / AVOID_MARGIN)
-      self.fallback_cfg = fallback_lib.FallbackConfig(margin=self.spec_table.threshold(self.spec_table["S1"]))
+    if config.recovery_rule == "fallback":   # the collision spec's margin (S1) and the minimum-speed spec's bound (S7)
+      self.fallback_cfg = fallback_lib.FallbackConfig(margin=self.spec_table.threshold(self.spec_table["S1"]),
+                                                      min_speed=self.spec_table.threshold(self.spec_table["S7"]))
 
   def _default_specs(self):
     return specs_lib.drone_specs() if self.vehicle == "drone" else specs_lib.rover_specs()

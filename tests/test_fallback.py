@@ -18,7 +18,8 @@ from specguard_jax import ekf
 from specguard_jax import specs
 from specguard_jax.autopilot import fallback as F
 
-CFG = F.FallbackConfig(margin=5.0)
+CFG = F.FallbackConfig(margin=5.0, min_speed=5.0)
+CFG0 = F.FallbackConfig(margin=5.0, min_speed=0.0)   # no speed floor
 V = jnp.array([6.0, 2.0, -0.5])
 FAR = (jnp.asarray(50.0), jnp.array([1.0, 0.0, 0.0]))
 
@@ -31,20 +32,26 @@ def test_rule_is_the_navigator_setpoint_while_the_alarm_is_down():
 
 def test_rule_slows_in_proportion_and_holds_past_the_margin():
   up = jnp.asarray(True)
-  np.testing.assert_allclose(F.apply(CFG, V, jnp.asarray(0.0), *FAR, up), V)             # certain: unchanged
-  np.testing.assert_allclose(F.apply(CFG, V, jnp.asarray(2.0), *FAR, up), [3.6, 1.2, -0.5], rtol=1e-6)  # 1 - 2/5
-  for sigma in (5.0, 8.0):                                                               # hold; vertical kept
-    np.testing.assert_allclose(F.apply(CFG, V, jnp.asarray(sigma), *FAR, up), [0.0, 0.0, -0.5], atol=1e-7)
+  np.testing.assert_allclose(F.apply(CFG0, V, jnp.asarray(0.0), *FAR, up), V)            # certain: unchanged
+  np.testing.assert_allclose(F.apply(CFG0, V, jnp.asarray(2.0), *FAR, up), [3.6, 1.2, -0.5], rtol=1e-6)  # 1 - 2/5
+  for cfg in (CFG0, CFG):
+    for sigma in (5.0, 8.0):                                                             # hold; vertical kept
+      np.testing.assert_allclose(F.apply(cfg, V, jnp.asarray(sigma), *FAR, up), [0.0, 0.0, -0.5], atol=1e-7)
   assert float(F.speed_scale(CFG, 2.5)) == pytest.approx(0.5)
+  # the slow-down stops at the minimum-speed spec (5 m/s), in the setpoint's direction; slower setpoints are kept
+  out = np.asarray(F.apply(CFG, V, jnp.asarray(2.0), *FAR, up))
+  assert np.linalg.norm(out[:2]) == pytest.approx(5.0) and out[0] / out[1] == pytest.approx(3.0) and out[2] == -0.5
+  slow = jnp.array([3.0, 0.0, 0.0])
+  np.testing.assert_allclose(F.apply(CFG, slow, jnp.asarray(2.0), *FAR, up), slow)
 
 
 def test_rule_widens_clearance():
   """Obstacle ahead (+x), 6 m away, sigma 2 m: clearance 5 + 2 = 7 m > 6 m, so no approach and a 0.5 m/s push back;
   without uncertainty 6 m is outside the 5 m margin and only the (unscaled) setpoint remains."""
   away = jnp.array([-1.0, 0.0, 0.0])                      # SDF gradient: away from the obstacle, i.e. towards -x
-  out = F.apply(CFG, V, jnp.asarray(2.0), jnp.asarray(6.0), away, jnp.asarray(True))
+  out = F.apply(CFG0, V, jnp.asarray(2.0), jnp.asarray(6.0), away, jnp.asarray(True))
   np.testing.assert_allclose(out, [-0.5, 1.2, -0.5], rtol=1e-6, atol=1e-7)
-  out = F.apply(CFG, V, jnp.asarray(0.0), jnp.asarray(6.0), away, jnp.asarray(True))
+  out = F.apply(CFG0, V, jnp.asarray(0.0), jnp.asarray(6.0), away, jnp.asarray(True))
   np.testing.assert_allclose(out, V)
 
 
