@@ -18,8 +18,8 @@ from specguard_jax import ekf
 from specguard_jax import specs
 from specguard_jax.autopilot import fallback as F
 
-CFG = F.FallbackConfig(margin=5.0, min_speed=5.0)
-CFG0 = F.FallbackConfig(margin=5.0, min_speed=0.0)   # no speed floor
+CFG = F.FallbackConfig(margin=5.0, min_speed=4.0, speed_margin=1.0)
+CFG0 = F.FallbackConfig(margin=5.0, min_speed=0.0, speed_margin=0.0)   # no speed floor
 V = jnp.array([6.0, 2.0, -0.5])
 FAR = (jnp.asarray(50.0), jnp.array([1.0, 0.0, 0.0]))
 
@@ -38,7 +38,8 @@ def test_rule_slows_in_proportion_and_holds_past_the_margin():
     for sigma in (5.0, 8.0):                                                             # hold; vertical kept
       np.testing.assert_allclose(F.apply(cfg, V, jnp.asarray(sigma), *FAR, up), [0.0, 0.0, -0.5], atol=1e-7)
   assert float(F.speed_scale(CFG, 2.5)) == pytest.approx(0.5)
-  # the slow-down stops at the minimum-speed spec (5 m/s), in the setpoint's direction; slower setpoints are kept
+  # the slow-down stops 1 m/s above the minimum-speed spec (4 m/s), in the setpoint's direction; slower setpoints
+  # are kept
   out = np.asarray(F.apply(CFG, V, jnp.asarray(2.0), *FAR, up))
   assert np.linalg.norm(out[:2]) == pytest.approx(5.0) and out[0] / out[1] == pytest.approx(3.0) and out[2] == -0.5
   slow = jnp.array([3.0, 0.0, 0.0])
