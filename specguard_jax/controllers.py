@@ -13,6 +13,10 @@ Built in:
   delorean            the "without recovery policy" ablation = DeLorean: residual detector, selective state
                       reconstruction, reactive mode with a zero residual policy: the autopilot flies on the
                       reconstructed state.
+  fallback            DeLorean plus the rule-based, uncertainty-aware fallback (no learning, EnvConfig.recovery_rule
+                      'fallback', specguard_jax.autopilot.fallback): while the alarm is up the navigator's setpoint
+                      slows down with the reconstruction's position uncertainty, widens obstacle clearance and holds
+                      once the uncertainty exceeds the collision spec's margin.
   specguard_no_recon  ablation: the run's policy with state reconstruction off.
 Other packages register more (`specguard_jax.baselines`, imported lazily by `available()` / `build()`).
 A builder that cannot build (e.g. its training run is missing) raises `NotAvailable(reason)`: the report lists the
@@ -212,6 +216,14 @@ def _delorean(ctx: BuildContext) -> Controller:
                     "reconstruction, the autopilot flies on the reconstructed state")
 
 
+def _fallback(ctx: BuildContext) -> Controller:
+  d = _delorean(ctx)
+  return Controller("fallback", d.env_overrides + (("recovery_rule", "fallback"),), zero_policy, None,
+                    "DeLorean + the rule-based fallback: while the alarm is up, slow down in proportion to the "
+                    "reconstruction's position uncertainty over the spec margin, widen obstacle clearance, hold "
+                    "when it exceeds the margin")
+
+
 def _no_recon(ctx: BuildContext) -> Controller:
   d = ctx.run("specguard_no_recon")
   if d:   # a run trained without reconstruction (train.py --no-reconstruction)
@@ -237,5 +249,6 @@ register("no_protection", _no_protection, "the autopilot alone")
 register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)")
 register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)")
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
+register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")
 register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)")
 register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)")
