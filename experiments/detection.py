@@ -8,9 +8,10 @@ MJX).
 Table columns: n missions; TPR = alarm raised while the attack is on (and none before it); FPR = missions with an
 alarm before the onset (the attack-free row: anywhere); delay = s from onset to the first alarm (median, p90);
 diag = diagnosis on the first alarm (after the diagnosis window) names the attacked sensor, among detected missions;
-mask = the diagnosed mask (detector `mask`, every sensor found compromised) at that tick equals the attack's mask
-exactly; hit = share of the attacked sensors the mask names; extra = share of missions whose mask names a sensor that
-was not attacked (all three among detected missions). The tables below count, per row, the sensor blamed
+mask = the diagnosed mask (detector `mask`, every sensor found compromised) equals the attack's mask exactly, read at
+the last alarm tick up to diag_window_s + mask_listen_s after the first alarm (--single-diag: the one-sensor mask);
+hit = share of the attacked sensors the mask names; extra = share of missions whose mask names a sensor that was not
+attacked (all three among detected missions). The tables below count, per row, the sensor blamed
 (`diagnosis`) and each sensor the mask names on those missions (SENSOR_NAMES columns: per-sensor accuracy).
 Rows: attack-free, each single sensor, and the sensor pairs PAIRS (both attacked from the same onset, same profile;
 --no-pairs / --no-singles leave them out). Attack magnitudes are drawn from the paper's Table 3 ranges
@@ -26,6 +27,7 @@ attack-free twin raised a false alarm left out; hidden times censored at the win
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import jax
@@ -67,7 +69,7 @@ def free_attacks(n: int):
 
 def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset: float = 25.0,
         duration: float = 20.0, target_fpr: float = 0.05, n_cal: int | None = None, seed: int = 0,
-        batch: int = 64, verbose: bool = True, singles: bool = True, pairs: bool = True):
+        batch: int = 64, verbose: bool = True, singles: bool = True, pairs: bool = True, multi: bool = True):
   """Returns (rows: list of dicts, calibrated DetectorConfig)."""
   mc = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(
       max_duration_s=seconds + 30.0, min_duration_s=seconds)
@@ -90,7 +92,7 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
   cal = record(jax.random.split(k_cal, n_cal), free_attacks(n_cal))
   base = det.DetectorConfig.drone() if vehicle == "drone" else det.DetectorConfig.rover()
   r, f = traces.residual_trace(base, cal, dt)
-  cfg = det.calibrate(base, r, f, target_fpr)
+  cfg = dataclasses.replace(det.calibrate(base, r, f, target_fpr), multi_diag=multi)
   if verbose:
     print(f"calibrated on {n_cal} attack-free {vehicle} missions of {seconds:.0f} s ({time.time() - t0:.1f} s)")
 
@@ -109,7 +111,8 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
   tr = record(jax.random.split(k_att, n), atk)
   out = traces.run_detector(cfg, tr, dt)
   win = int(round(cfg.diag_window_s / dt))
-  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], tr, atk, win, out["mask"]))
+  mwin = int(round((cfg.diag_window_s + cfg.mask_listen_s) / dt))
+  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], tr, atk, win, out["mask"], mwin))
   true_mask = np.asarray(atk.mask) > 0.5
   any_alarm = np.asarray(jnp.any(out["alarm"] & tr.valid, axis=-1))
   rows = []
@@ -244,6 +247,7 @@ def main():
   ap.add_argument("--seed", type=int, default=0)
   ap.add_argument("--no-pairs", action="store_true", help="leave out the two-sensor rows (PAIRS)")
   ap.add_argument("--no-singles", action="store_true", help="leave out the single-sensor rows")
+  ap.add_argument("--single-diag", action="store_true", help="the mask names the diagnosis only (multi_diag off)")
   ap.add_argument("--stealthy", type=float, default=None, metavar="S",
                   help="design stealthy ramps hidden S s per sensor instead (onset: --onset, default 12 s here)")
   a = ap.parse_args()
@@ -252,7 +256,7 @@ def main():
                    target_fpr=a.fpr, seed=a.seed)
     return
   run(a.vehicle, a.missions, a.seconds, a.onset, a.duration, a.fpr, a.cal, a.seed, a.batch,
-      singles=not a.no_singles, pairs=not a.no_pairs)
+      singles=not a.no_singles, pairs=not a.no_pairs, multi=not a.single_diag)
 
 
 if __name__ == "__main__":

@@ -58,6 +58,39 @@ body z and the centripetal force (odometry speed x bicycle-model yaw rate) on bo
 (the aiding pattern of an accelerometer bias) but leaves the accelerometer on that model, an accelerometer bias does
 not (`acc_z_tol`, `acc_y_tol`).
 
+Multi-sensor diagnosis (`diagnose_mask`; `mask` [6], every sensor found compromised; `diagnosis` stays the primary,
+the strongest one, chosen as above). The primary is always in the mask. Another sensor joins it when its own evidence
+passes its own threshold and the primary's attack cannot have produced that evidence; the rule follows the causal
+graph above (a compromised sensor disturbs everything downstream of what it feeds, so evidence downstream of the
+primary is explained, and only checks that bypass the primary can name a second sensor):
+  * own evidence: the peak score of the sensor's own channels (GPS position / velocity, baro, mag heading, flow x/y;
+    IMU-model channels) >= mask_h[s] (score units; calibrated on attack-free missions, `mask_thresholds`).
+  * IMU primary (gyro / accel): its prediction drifts from every aiding sensor, so aiding innovations, the velocity
+    checks and the complementary filters are all explained. Only the GPS can join, when the GPS-free dead reckoning
+    (which a blamed IMU no longer pulls to the GPS) also disagrees (`dr_h`); the other IMU sensor never joins (a
+    biased IMU tumbles the vehicle off both IMU models). No listening after the window (below).
+  * GPS: under an aiding primary, a position jump that the GPS velocity channels did not lead (an aiding velocity or
+    heading attack moves the prediction's velocity first), the dead-reckoning check (not under a flow primary, whose
+    flow the dead reckoning integrates), or the GPS velocity moving off the IMU filter (`gps_moved`; the GPS's own
+    velocity, which a heading / height / flow attack does not move).
+  * baro: under a GPS primary, only while the GPS vertical channels are quiet or weaker than the baro's (a GPS height
+    spoof drags the EKF height into the baro innovation); under a mag primary its innovation; under others also the
+    GPS-vs-baro height check with the GPS not named.
+  * mag: not under an IMU primary (a gyro bias turns the EKF heading); under a GPS primary only with the GPS velocity
+    agreeing with the flow better in the EKF's heading than in the magnetometer's (a spoof's corrections turn the
+    EKF heading a little).
+  * flow: its innovation and its complementary-filter innovation (`aid_blame`: the flow velocity moved without the
+    IMU; a GPS spoof moves the EKF velocity, not the flow); not under an IMU or a baro primary (the baro scales the
+    flow velocity).
+  * parsimony: mag and flow named together under a GPS primary are the one gyro's (a gyro bias that hid from its
+    model channels turns the heading and moves the flow velocity off the IMU; `diagnose` uses that pattern too).
+The evidence is the diagnosis window's; after it, for `mask_listen_s` (aiding primaries only), each tick's scores and
+checks are read on top of it and a sensor once named stays named while the alarm and the primary stay (a stealthy
+second ramp shows seconds after the first sensor raised the alarm). The rover has no flow: its GPS checks run on the
+wheel odometry. Known limits: a stealthy baro ramp beside a GPS spoof is named only through its own innovation (the
+height check cannot tell it from the spoof's vertical part); a gyro ramp that hides from its model channels beside a
+GPS spoof is named only through the parsimony rule. `multi_diag=False`: the mask is the primary alone.
+
 Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
 alarm of the cross-checks alone also waits for the velocity and height cross-checks to agree again); on hand-back
 the dead reckoning restarts at the GPS and the velocity and height cross-checks restart.
@@ -177,7 +210,7 @@ class DetectorConfig:
   mask_h: tuple = (1.0,) * N_SENSORS
   mask_listen_s: float = 5.0        # s; after the diagnosis window the mask keeps adding sensors this long
   mask_margin: float = 3.0          # calibration: mask_h = max(mask_h_min, mask_margin x the attack-free per-mission
-  mask_h_min: float = 0.5           #   maximum of the sensor's evidence at calibrate's quantile)
+  mask_h_min: float = 1.0           #   maximum of the sensor's evidence at calibrate's quantile)
   mass: float = 1.5
   inertia: tuple = (0.029125, 0.029125, 0.055225)
   rotor_xy: tuple = ()
@@ -667,7 +700,7 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   own = sensor_evidence(cfg, peak) >= jnp.asarray(cfg.mask_h, f32)        # [6] own channels past their threshold
   gps_pos_h, gps_vel = jnp.max(p[0:2]), jnp.max(p[3:6])
   gps_z = jnp.maximum(p[_GPS_Z], p[5])
-  dr_off = xpeak[0] >= 1.0                   # GPS left the GPS-free dead reckoning (flow / odometry, any height/heading)
+  dr_off = xpeak[0] >= 1.0        # GPS left the GPS-free dead reckoning (flow / odometry, any height / heading)
   e_gps, e_aid = xpeak[2], xpeak[3]          # complementary IMU filters: GPS / aiding velocity moved, IMU did not
   chi_e, chi_m, av_v = cons[0], cons[1], cons[3] > 0.5
   hgt_off = (cons[4] > 0.5) & (cons[2] >= jnp.where(cfg.hgt_h > 0, cfg.hgt_h, cfg.gps_baro_tol))
@@ -696,9 +729,9 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   # IMU sensors are the primary's (`diagnose` blames an IMU whose model evidence reaches imu_blame); the other IMU
   # sensor is explained by the primary one (a biased IMU tumbles the vehicle off both models). A gyro bias that hid
   # from its model channels turns the EKF heading (mag evidence) AND moves the flow velocity off the IMU filter:
-  # heading and flow named together under a GPS / baro primary are the one gyro's (the fewest sensors that explain
-  # the evidence).
-  gyro = mag & flow & (is_("gps") | is_("baro"))
+  # heading and flow named together under a GPS primary are the one gyro's (the fewest sensors that explain the
+  # evidence).
+  gyro = mag & flow & is_("gps")
   second = jnp.stack([gps, gyro, jnp.zeros((), bool), mag & ~gyro, baro, flow & ~gyro])   # SENSOR_NAMES order
   return jnp.maximum(prim, second.astype(f32))
 
