@@ -73,7 +73,7 @@ primary is explained, and only checks that bypass the primary can name a second 
     heading attack moves the prediction's velocity first), the dead-reckoning check (not under a flow primary, whose
     flow the dead reckoning integrates), or the GPS velocity moving off the IMU filter (`gps_moved`; the GPS's own
     velocity, which a heading / height / flow attack does not move).
-  * baro: under a GPS primary, only while the GPS vertical channels are quiet or weaker than the baro's (a GPS height
+  * baro: under a GPS primary, only while the GPS vertical channels are quiet or not above the baro's (a GPS height
     spoof drags the EKF height into the baro innovation); under a mag primary its innovation; under others also the
     GPS-vs-baro height check with the GPS not named.
   * mag: not under an IMU primary (a gyro bias turns the EKF heading); under a GPS primary only with the GPS velocity
@@ -713,9 +713,9 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   jump = (gps_pos_h >= 1.0) & (gps_vel < 1.0)
   gps = jnp.where(imu_p, own[_S["gps"]] & dr_off,
                   (own[_S["gps"]] & jump) | (dr_off & ~is_("flow")) | (e_gps >= cfg.gps_moved))
-  # Barometer: its own innovation, not explained by a GPS height spoof (the GPS vertical channels are quiet or
-  # weaker) and, under an IMU or flow primary (both move the EKF height), confirmed by the GPS-vs-baro height check.
-  baro = own[_S["baro"]] & jnp.where(is_("gps"), (gps_z < 1.0) | (p[_BARO_CH] > gps_z),
+  # Barometer: its own innovation, not explained by a GPS height spoof (the GPS vertical channels are quiet or not
+  # stronger) and, under an IMU or flow primary (both move the EKF height), confirmed by the GPS-vs-baro height check.
+  baro = own[_S["baro"]] & jnp.where(is_("gps"), (gps_z < 1.0) | (p[_BARO_CH] >= gps_z),
                                      jnp.where(is_("mag"), True, hgt_off & ~gps))
   # Magnetometer: its heading innovation (the heading is its own state: baro / flow attacks barely turn it); under a
   # GPS primary (a spoof's velocity corrections turn the EKF heading) only when the GPS velocity agrees with the flow
