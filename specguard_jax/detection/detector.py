@@ -270,7 +270,8 @@ class DetectorState:
   cusum: [C] CUSUM statistic (normalised units).  scores: [C] cusum / h (alarm when any > 1).
   residual: [C] last normalised |residual| (held on channels without a fresh sample).
   peak: [C] max score during the diagnosis window of the current alarm.
-  alarm: [] bool.  diagnosis: [] int32 index into SENSOR_NAMES (-1: none).  mask: [6] 0/1 diagnosed sensors.
+  alarm: [] bool.  diagnosis: [] int32 index into SENSOR_NAMES (-1: none), the primary (strongest) compromised
+  sensor.  mask: [6] 0/1 every sensor diagnosed compromised (`diagnose_mask`; includes `diagnosis`).
   time_since_alarm: [] s since the current alarm was raised (0 without alarm).  quiet_time: [] s all scores have
   been below clear_frac.  n_alarms: [] int32 alarms raised so far.  time: [] s since init.
   Model state: baseline [6] (IMU residual baseline), rate_model [3] (gyro observer, rad/s), airborne_time [] s.
@@ -870,7 +871,7 @@ def calibrate(cfg: DetectorConfig, residual_traces, fresh, target_fpr: float = 0
   n_used = max(1.0, float(used.sum()))
   q = float(np.clip(1.0 - target_fpr / n_used, 0.0, 1.0))
   scale, h_raw, max_s, n_fresh = jax.device_get(calibration_stats(jnp.asarray(residual_traces, jnp.float32),
-                                                               jnp.asarray(fresh, bool), cfg.k_quantile, q))
+                                                                   jnp.asarray(fresh, bool), cfg.k_quantile, q))
   used = used * (np.asarray(n_fresh) > 0)
   h = np.maximum(cfg.h_min, cfg.h_margin * np.asarray(h_raw))
   cfg = dataclasses.replace(cfg, scale=tuple(float(x) for x in scale), h=tuple(float(x) for x in h),
