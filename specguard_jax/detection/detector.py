@@ -72,7 +72,8 @@ primary is explained, and only checks that bypass the primary can name a second 
   * GPS: under an aiding primary, a position jump that the GPS velocity channels did not lead (an aiding velocity or
     heading attack moves the prediction's velocity first), the dead-reckoning check (not under a flow primary, whose
     flow the dead reckoning integrates), or the GPS velocity moving off the IMU filter (`gps_moved`; the GPS's own
-    velocity, which a heading / height / flow attack does not move).
+    velocity, which a height / flow attack does not move); under a mag primary not the dead reckoning (it rotates
+    the flow by the EKF or the magnetometer heading, both of which a magnetometer attack turns).
   * baro: under a GPS primary, only while the GPS vertical channels are quiet or not above the baro's (a GPS height
     spoof drags the EKF height into the baro innovation); under a mag primary its innovation; under others also the
     GPS-vs-baro height check with the GPS not named.
@@ -711,9 +712,11 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   # GPS: a position jump the velocity channels did not lead (an IMU bias or an aiding velocity attack moves the
   # prediction's velocity first), or the GPS-free dead reckoning disagrees (not under a flow primary: it integrates
   # the flow), or the GPS velocity moved without the IMU (not under an IMU primary: the IMU filters drift with it).
+  # Not the dead reckoning under a mag primary: it rotates the flow by the EKF or the magnetometer heading, both of
+  # which a magnetometer attack turns (the IMU filter, pulled to the GPS velocity itself, drifts little meanwhile).
   jump = (gps_pos_h >= 1.0) & (gps_vel < 1.0)
   gps = jnp.where(imu_p, own[_S["gps"]] & dr_off,
-                  (own[_S["gps"]] & jump) | (dr_off & ~is_("flow")) | (e_gps >= cfg.gps_moved))
+                  (own[_S["gps"]] & jump) | (dr_off & ~is_("flow") & ~is_("mag")) | (e_gps >= cfg.gps_moved))
   # Barometer: its own innovation, not explained by a GPS height spoof (the GPS vertical channels are quiet or not
   # stronger) and, under an IMU or flow primary (both move the EKF height), confirmed by the GPS-vs-baro height check.
   baro = own[_S["baro"]] & jnp.where(is_("gps"), (gps_z < 1.0) | (p[_BARO_CH] >= gps_z),
@@ -732,9 +735,15 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   # from its model channels turns the EKF heading (mag evidence) AND moves the flow velocity off the IMU filter:
   # heading and flow named together under a GPS primary are the one gyro's (the fewest sensors that explain the
   # evidence).
-  gyro = mag & flow & is_("gps")
-  second = jnp.stack([gps, gyro, jnp.zeros((), bool), mag & ~gyro, baro, flow & ~gyro])   # SENSOR_NAMES order
-  return jnp.maximum(prim, second.astype(f32))
+  second = jnp.stack([gps, jnp.zeros((), bool), jnp.zeros((), bool), mag, baro, flow])   # SENSOR_NAMES order
+  return _parsimony(primary, jnp.maximum(prim, second.astype(f32)))
+
+
+def _parsimony(primary, mask):
+  """Heading (mag) and flow named together beside a GPS primary are one gyro bias that hid from its model channels:
+  `mask` [6] with them replaced by the gyro (applied to the latched mask too, `_switch`)."""
+  both = (primary == _S["gps"]) & (mask[_S["mag"]] > 0) & (mask[_S["flow"]] > 0)
+  return jnp.where(both, mask.at[_S["gyro"]].set(1.0).at[_S["mag"]].set(0.0).at[_S["flow"]].set(0.0), mask)
 
 
 def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=False, cons=None, xchk=None,
@@ -784,7 +793,7 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
                       jnp.where(listen, jnp.maximum(cpeak, cons), cpeak), jnp.where(listen, jnp.maximum(xpeak, xchk),
                                                                                    xpeak))
   keep = state.alarm & ~start & (diag == state.diagnosis)
-  mask = jnp.where(alarm, jnp.where(keep, jnp.maximum(state.mask, now), now), 0.0)
+  mask = jnp.where(alarm, jnp.where(keep, _parsimony(diag, jnp.maximum(state.mask, now)), now), 0.0)
   return dict(alarm=alarm, peak=peak, cpeak=cpeak, xpeak=xpeak, xraised=xraised, diagnosis=diag, mask=mask,
               time_since_alarm=tsa, quiet_time=jnp.where(clear, 0.0, quiet_time),
               n_alarms=state.n_alarms + start.astype(jnp.int32))
