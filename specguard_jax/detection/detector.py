@@ -72,8 +72,9 @@ primary is explained, and only checks that bypass the primary can name a second 
   * GPS: under an aiding primary, a position jump that the GPS velocity channels did not lead (an aiding velocity or
     heading attack moves the prediction's velocity first), the dead-reckoning check (not under a flow primary, whose
     flow the dead reckoning integrates), or the GPS velocity moving off the IMU filter (`gps_moved`; the GPS's own
-    velocity, which a height / flow attack does not move); under a mag primary not the dead reckoning (it rotates
-    the flow by the EKF or the magnetometer heading, both of which a magnetometer attack turns).
+    velocity, which a height / flow attack does not move; gps_ratio x the aiding filter's but under a flow
+    primary); under a mag primary not the dead reckoning (it rotates the flow by the EKF or the magnetometer
+    heading, both of which a magnetometer attack turns).
   * baro: under a GPS primary, only while the GPS vertical channels are quiet or not above the baro's (a GPS height
     spoof drags the EKF height into the baro innovation); under a mag primary its innovation; under others also the
     GPS-vs-baro height check with the GPS not named.
@@ -714,9 +715,13 @@ def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
   # the flow), or the GPS velocity moved without the IMU (not under an IMU primary: the IMU filters drift with it).
   # Not the dead reckoning under a mag primary: it rotates the flow by the EKF or the magnetometer heading, both of
   # which a magnetometer attack turns (the IMU filter, pulled to the GPS velocity itself, drifts little meanwhile).
+  # The GPS filter's innovation counts when it is gps_ratio x the aiding filter's (both moving alike: the EKF
+  # attitude the IMU filters share drifted, e.g. in a long baro alarm), unless the primary is the flow (whose
+  # attack moves the aiding filter).
   jump = (gps_pos_h >= 1.0) & (gps_vel < 1.0)
   gps = jnp.where(imu_p, own[_S["gps"]] & dr_off,
-                  (own[_S["gps"]] & jump) | (dr_off & ~is_("flow") & ~is_("mag")) | (e_gps >= cfg.gps_moved))
+                  (own[_S["gps"]] & jump) | (dr_off & ~is_("flow") & ~is_("mag"))
+                  | ((e_gps >= cfg.gps_moved) & (is_("flow") | (e_gps >= cfg.gps_ratio * e_aid))))
   # Barometer: its own innovation, not explained by a GPS height spoof (the GPS vertical channels are quiet or not
   # stronger) and, under an IMU or flow primary (both move the EKF height), confirmed by the GPS-vs-baro height check.
   baro = own[_S["baro"]] & jnp.where(is_("gps"), (gps_z < 1.0) | (p[_BARO_CH] >= gps_z),
