@@ -8,8 +8,14 @@ MJX).
 Table columns: n missions; TPR = alarm raised while the attack is on (and none before it); FPR = missions with an
 alarm before the onset (the attack-free row: anywhere); delay = s from onset to the first alarm (median, p90);
 diag = diagnosis on the first alarm (after the diagnosis window) names the attacked sensor, among detected missions;
-the confusion table below it counts, per row, the sensor blamed on those missions (SENSOR_NAMES columns).
-Attack magnitudes are drawn from the paper's Table 3 ranges (specguard_jax.attacks.BIAS_RANGES), random direction.
+mask = the diagnosed mask (detector `mask`, every sensor found compromised) equals the attack's mask exactly, read at
+the last alarm tick up to diag_window_s + mask_listen_s after the first alarm (--single-diag: the one-sensor mask);
+hit = share of the attacked sensors the mask names; extra = share of missions whose mask names a sensor that was not
+attacked (all three among detected missions). The tables below count, per row, the sensor blamed
+(`diagnosis`) and each sensor the mask names on those missions (SENSOR_NAMES columns: per-sensor accuracy).
+Rows: attack-free, each single sensor, and the sensor pairs PAIRS (both attacked from the same onset, same profile;
+--no-pairs / --no-singles leave them out). Attack magnitudes are drawn from the paper's Table 3 ranges
+(specguard_jax.attacks.BIAS_RANGES), random direction.
 
   JAX_PLATFORMS=cpu python experiments/detection.py --stealthy 10         # designed stealthy ramps (calibration.stealthy)
 
@@ -21,6 +27,7 @@ attack-free twin raised a false alarm left out; hidden times censored at the win
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import jax
@@ -37,11 +44,17 @@ from specguard_jax.types import SENSOR_NAMES
 
 SENSORS = {"drone": ("gps", "gyro", "accel", "mag", "baro", "flow"),
            "rover": ("gps", "gyro", "accel", "mag", "baro")}
+# Two-sensor attacks (issue 52's multi-sensor settings), written "a+b".
+PAIRS = {"drone": ("gps+flow", "gps+mag", "gps+baro", "gps+gyro"),
+         "rover": ("gps+mag", "gps+baro", "gps+gyro")}
 
 
 def make_attacks(sensor: str, profile: str, n: int, key, onset: float, duration: float, scale: float = 1.0):
-  """n single-sensor attacks with Table-3 magnitudes, fixed onset/duration (s), ramp 10-30 s when stealthy."""
-  cfg = attacks.AttackConfig(sensors=(sensor,), profiles=(profile,), ramp_s=(10.0, 30.0), scale=scale)
+  """n attacks with Table-3 magnitudes, fixed onset/duration (s), ramp 10-30 s when stealthy; `sensor` is one
+  sensor or several joined by '+' (all attacked together, same profile)."""
+  names = tuple(sensor.split("+"))
+  cfg = attacks.AttackConfig(sensors=names, profiles=(profile,), ramp_s=(10.0, 30.0), scale=scale,
+                             n_sensors=len(names))
   s = jax.vmap(lambda k: attacks.sample_attack(cfg, k, 100.0))(jax.random.split(key, n))
   return s.replace(onset=jnp.full((n,), onset, jnp.float32), duration=jnp.full((n,), duration, jnp.float32))
 
@@ -56,7 +69,7 @@ def free_attacks(n: int):
 
 def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset: float = 25.0,
         duration: float = 20.0, target_fpr: float = 0.05, n_cal: int | None = None, seed: int = 0,
-        batch: int = 64, verbose: bool = True):
+        batch: int = 64, verbose: bool = True, singles: bool = True, pairs: bool = True, multi: bool = True):
   """Returns (rows: list of dicts, calibrated DetectorConfig)."""
   mc = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(
       max_duration_s=seconds + 30.0, min_duration_s=seconds)
@@ -79,23 +92,28 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
   cal = record(jax.random.split(k_cal, n_cal), free_attacks(n_cal))
   base = det.DetectorConfig.drone() if vehicle == "drone" else det.DetectorConfig.rover()
   r, f = traces.residual_trace(base, cal, dt)
-  cfg = det.calibrate(base, r, f, target_fpr)
+  cfg = dataclasses.replace(det.calibrate(base, r, f, target_fpr), multi_diag=multi)
   if verbose:
     print(f"calibrated on {n_cal} attack-free {vehicle} missions of {seconds:.0f} s ({time.time() - t0:.1f} s)")
 
-  cells = [("none", "-")] + [(s, p) for s in SENSORS[vehicle] for p in attacks.PROFILES]
+  cells = ([("none", "-")] + [(s, p) for s in SENSORS[vehicle] * singles for p in attacks.PROFILES]
+           + [(s, p) for s in PAIRS[vehicle] * pairs for p in attacks.PROFILES])
   parts = []
   for i, (s, p) in enumerate(cells):
     if s == "none":
       parts.append(free_attacks(missions))
     else:
-      parts.append(make_attacks(s, p, missions, jax.random.fold_in(k_bias, i), onset, duration))
+      # (keyed by the setting, not its row: adding rows leaves the other rows' attacks as they were)
+      parts.append(make_attacks(s, p, missions, jax.random.fold_in(k_bias, _cell_id(vehicle, s, p)), onset,
+                                duration))
   atk = stack_attacks(parts)
   n = missions * len(cells)
   tr = record(jax.random.split(k_att, n), atk)
   out = traces.run_detector(cfg, tr, dt)
   win = int(round(cfg.diag_window_s / dt))
-  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], tr, atk, win))
+  mwin = int(round((cfg.diag_window_s + cfg.mask_listen_s) / dt))
+  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], tr, atk, win, out["mask"], mwin))
+  true_mask = np.asarray(atk.mask) > 0.5
   any_alarm = np.asarray(jnp.any(out["alarm"] & tr.valid, axis=-1))
   rows = []
   for i, (s, p) in enumerate(cells):
@@ -109,13 +127,25 @@ def run(vehicle: str = "drone", missions: int = 4, seconds: float = 60.0, onset:
            "delay_p90": float(np.percentile(delay, 90)) if delay.size else float("nan"),
            "diag": float(np.mean(m["correct"][sl][det_])) if det_.any() else float("nan"),
            "blamed": blamed_counts(out["alarm"][sl], out["diagnosis"][sl], tr.valid[sl], det_, win)}
+    named, truth = m["mask_at"][sl][det_], true_mask[sl][det_]
+    row.update(mask=float(np.mean(m["mask_exact"][sl][det_])) if det_.any() else float("nan"),
+               hit=float(np.sum(named & truth) / max(1, np.sum(truth))) if det_.any() else float("nan"),
+               extra=float(np.mean(np.any(named & ~truth, axis=-1))) if det_.any() else float("nan"),
+               named=named.sum(0).astype(int))
     rows.append(row)
   if verbose:
     print(f"{n} test missions in {time.time() - t0:.1f} s total; onset {onset:.0f} s, duration {duration:.0f} s, "
           f"target FPR {target_fpr:.2f}/mission")
     print(format_table(rows))
     print(format_confusion(rows))
+    print(format_confusion(rows, "named"))
   return rows, cfg
+
+
+def _cell_id(vehicle: str, sensor: str, profile: str) -> int:
+  """A fixed integer per (sensor setting, profile): the attack draws' key."""
+  names = SENSORS[vehicle] + PAIRS[vehicle]
+  return 1 + 2 * names.index(sensor) + attacks.PROFILES.index(profile)
 
 
 def blamed_counts(alarm, diagnosis, valid, detected, win: int):
@@ -184,20 +214,23 @@ def stealthy_table(vehicle: str = "drone", hidden_s: float = 10.0, onset: float 
 
 def format_table(rows) -> str:
   f = lambda x, d=2: "   -" if x != x else f"{x:.{d}f}"
-  lines = [f"{'sensor':7s} {'profile':9s} {'n':>4s} {'TPR':>5s} {'FPR':>5s} {'delay_med':>9s} {'delay_p90':>9s} "
-           f"{'diag':>5s}"]
+  lines = [f"{'sensor':9s} {'profile':9s} {'n':>4s} {'TPR':>5s} {'FPR':>5s} {'delay_med':>9s} {'delay_p90':>9s} "
+           f"{'diag':>5s} {'mask':>5s} {'hit':>5s} {'extra':>5s}"]
   for r in rows:
-    lines.append(f"{r['sensor']:7s} {r['profile']:9s} {r['n']:4d} {f(r['tpr']):>5s} {f(r['fpr']):>5s} "
-                 f"{f(r['delay_med'], 2):>9s} {f(r['delay_p90'], 2):>9s} {f(r['diag']):>5s}")
+    lines.append(f"{r['sensor']:9s} {r['profile']:9s} {r['n']:4d} {f(r['tpr']):>5s} {f(r['fpr']):>5s} "
+                 f"{f(r['delay_med'], 2):>9s} {f(r['delay_p90'], 2):>9s} {f(r['diag']):>5s} "
+                 f"{f(r.get('mask', float('nan'))):>5s} {f(r.get('hit', float('nan'))):>5s} "
+                 f"{f(r.get('extra', float('nan'))):>5s}")
   return "\n".join(lines)
 
 
-def format_confusion(rows) -> str:
-  """Sensor blamed (columns) per attacked sensor/profile (rows), counts over the detected missions."""
-  lines = [f"{'blamed:':17s} " + " ".join(f"{n:>5s}" for n in SENSOR_NAMES)]
+def format_confusion(rows, key: str = "blamed") -> str:
+  """Per attacked sensor/profile (rows), counts over the detected missions of each sensor (columns) blamed
+  (key 'blamed': the diagnosis) or named by the mask (key 'named')."""
+  lines = [f"{key + ':':19s} " + " ".join(f"{n:>5s}" for n in SENSOR_NAMES)]
   for r in rows:
     if r["sensor"] != "none":
-      lines.append(f"{r['sensor'] + ' ' + r['profile']:17s} " + " ".join(f"{c:5d}" for c in r["blamed"]))
+      lines.append(f"{r['sensor'] + ' ' + r['profile']:19s} " + " ".join(f"{c:5d}" for c in r[key]))
   return "\n".join(lines)
 
 
@@ -212,6 +245,9 @@ def main():
   ap.add_argument("--cal", type=int, default=None, help="attack-free calibration missions (default max(8, 2N))")
   ap.add_argument("--batch", type=int, default=64)
   ap.add_argument("--seed", type=int, default=0)
+  ap.add_argument("--no-pairs", action="store_true", help="leave out the two-sensor rows (PAIRS)")
+  ap.add_argument("--no-singles", action="store_true", help="leave out the single-sensor rows")
+  ap.add_argument("--single-diag", action="store_true", help="the mask names the diagnosis only (multi_diag off)")
   ap.add_argument("--stealthy", type=float, default=None, metavar="S",
                   help="design stealthy ramps hidden S s per sensor instead (onset: --onset, default 12 s here)")
   a = ap.parse_args()
@@ -219,7 +255,8 @@ def main():
     stealthy_table(a.vehicle, a.stealthy, onset=12.0 if a.onset == ap.get_default("onset") else a.onset,
                    target_fpr=a.fpr, seed=a.seed)
     return
-  run(a.vehicle, a.missions, a.seconds, a.onset, a.duration, a.fpr, a.cal, a.seed, a.batch)
+  run(a.vehicle, a.missions, a.seconds, a.onset, a.duration, a.fpr, a.cal, a.seed, a.batch,
+      singles=not a.no_singles, pairs=not a.no_pairs, multi=not a.single_diag)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,8 @@
 """Residual CUSUM detector on real env ticks: false positives, overt/stealthy detection and diagnosis, oracle, switch;
 diagnosis rules on constructed evidence and the GPS cross-checks on constructed flights."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,6 +25,8 @@ OVERT = {"gps": [20.0, 10.0, 2.0], "gyro": [0.0, 0.0, 1.0], "accel": [0.0, 0.0, 
 STEALTHY = {"gps": [30.0, 0.0, 0.0], "baro": [8.0]}
 # Horizontal accelerometer bias: the IMU-model channel (accel z) barely sees it, every aiding velocity does.
 EXTRA = {"accel/overt_h": ("accel", [1.5, 1.5, 0.0], "overt")}
+# Two-sensor attacks (both from ONSET, overt, the OVERT biases): the diagnosis mask must name both.
+PAIRS = ("gps+baro", "gps+mag")
 
 
 def _stack(xs):
@@ -33,11 +37,14 @@ def _stack(xs):
 def run():
   env = envs.make("drone", mission=MissionConfig.drone(max_duration_s=70.0, min_duration_s=45.0))
   cells = ([("none", None)] * (N_CAL + N_FREE) + [(s, "overt") for s in OVERT] + [(s, "stealthy") for s in STEALTHY]
-           + [tuple(k.split("/")) for k in EXTRA])
+           + [tuple(k.split("/")) for k in EXTRA] + [(s, "overt") for s in PAIRS])
   sched = []
   for s, p in cells:
     if s == "none":
       sched.append(attacks.no_attack())
+    elif "+" in s:
+      parts = [attacks.schedule_for(x, OVERT[x], ONSET, DURATION, p) for x in s.split("+")]
+      sched.append(parts[0].replace(mask=sum(x.mask for x in parts), bias=sum(x.bias for x in parts)))
     elif f"{s}/{p}" in EXTRA:
       sensor, bias, profile = EXTRA[f"{s}/{p}"]
       sched.append(attacks.schedule_for(sensor, bias, ONSET, DURATION, profile))
@@ -55,7 +62,9 @@ def run():
   out = jax.device_get(traces.run_detector(cfg, rest, DT))
   rest_atk = jax.tree.map(lambda x: x[N_CAL:], atk)
   win = int(round(cfg.diag_window_s / DT))
-  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], rest, rest_atk, win))
+  # the mask read once the multi-sensor diagnosis has stopped listening (diagnosis window + mask_listen_s)
+  mwin = int(round((cfg.diag_window_s + cfg.mask_listen_s) / DT))
+  m = jax.device_get(traces.detection_metrics(out["alarm"], out["diagnosis"], rest, rest_atk, win, out["mask"], mwin))
   names = [f"{s}/{p}" for s, p in cells[N_CAL:]]
   return {"cfg": cfg, "out": out, "m": m, "names": names, "valid": np.asarray(rest.valid),
           "time": np.asarray(rest.time)}
@@ -89,6 +98,25 @@ def test_overt_attack_detected_and_diagnosed(run, sensor):
   assert m["delay"][i] < 1.5, (sensor, m["delay"][i])
   assert m["correct"][i], (sensor, SENSOR_NAMES[int(run["out"]["diagnosis"][i][int(round((ONSET + m["delay"][i]
                                                                                                 + 1.0) / DT))])])
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_pair_attack_mask_names_both_sensors(run, pair):
+  """Two sensors attacked together: the diagnosis mask names exactly both (the diagnosis one of them)."""
+  i = _idx(run, f"{pair}/overt")
+  m = run["m"]
+  assert m["detected"][i] and m["correct"][i], (m["detected"][i], m["delay"][i])
+  named = [SENSOR_NAMES[k] for k in np.nonzero(m["mask_at"][i])[0]]
+  assert sorted(named) == sorted(pair.split("+")), named
+
+
+@pytest.mark.parametrize("sensor", list(OVERT))
+def test_single_attack_mask_names_only_that_sensor(run, sensor):
+  """A one-sensor attack: the mask names that sensor alone (the evidence its attack spreads to other sensors'
+  channels is explained by it)."""
+  i = _idx(run, f"{sensor}/overt")
+  named = [SENSOR_NAMES[k] for k in np.nonzero(run["m"]["mask_at"][i])[0]]
+  assert named == [sensor], named
 
 
 def test_horizontal_accel_bias_blamed_on_the_accelerometer(run):
@@ -272,6 +300,45 @@ def test_diagnose_heading_gyro_vs_mag(d):
   assert d(_peak(accel_z=0.8)) == _ACCEL
   assert d(_peak(accel_z=0.8, mag=2.0)) == _GYRO
   assert d(_peak(gyro_z=0.9, accel_z=0.6)) == _GYRO
+
+
+def test_diagnose_mask_rules(diag_cfg):
+  """The multi-sensor mask on constructed evidence: a second sensor is named on evidence its own and not explained by
+  the primary (module docstring, "Multi-sensor diagnosis")."""
+  f = jax.jit(lambda prim, peak, cons, xpeak: detection.diagnose_mask(diag_cfg, prim, peak, cons, xpeak))
+
+  def named(prim, peak, cons=None, dr=0.0, e_gps=0.0, e_aid=0.0, cfg=None):
+    xp = jnp.array([dr, 0.0, e_gps, e_aid, 0.0, 0.0], jnp.float32)
+    cons = _cons() if cons is None else cons
+    out = (f(prim, peak, cons, xp) if cfg is None else detection.diagnose_mask(cfg, prim, peak, cons, xp))
+    return {SENSOR_NAMES[k] for k in np.nonzero(np.asarray(out))[0]}
+
+  # GPS primary + flow: the flow's own innovation AND its velocity moved without the IMU (else GPS spill-over)
+  gf = _peak(gps_pos_x=2.0, flow_x=2.0)
+  assert named(_GPS, gf, e_aid=2.0) == {"gps", "flow"}
+  assert named(_GPS, gf, e_aid=0.2) == {"gps"}
+  # GPS primary + baro: named unless the GPS vertical channels explain the baro innovation
+  assert named(_GPS, _peak(gps_pos_x=2.0, baro=2.0)) == {"gps", "baro"}
+  assert named(_GPS, _peak(gps_pos_x=2.0, gps_pos_z=2.0, baro=1.2)) == {"gps"}
+  # GPS primary + mag: the GPS agrees with the flow under the EKF heading, not the magnetometer's
+  gm = _peak(gps_pos_x=2.0, mag=2.0)
+  assert named(_GPS, gm, _cons(chi_e=2.0, chi_m=60.0)) == {"gps", "mag"}
+  assert named(_GPS, gm, _cons(chi_e=15.0, chi_m=15.0)) == {"gps"}
+  # ... and heading + flow together: one gyro bias, not two sensors (parsimony)
+  assert named(_GPS, _peak(gps_pos_x=2.0, mag=2.0, flow_x=2.0), _cons(chi_e=2.0, chi_m=60.0), e_aid=2.0) == {"gps",
+                                                                                                           "gyro"}
+  # mag primary: a GPS position jump (not led by the velocity channels) is the GPS's; heading-induced velocity is not
+  assert named(_MAG, _peak(mag=2.0, gps_pos_x=2.0)) == {"mag", "gps"}
+  assert named(_MAG, _peak(mag=2.0, gps_vel_x=2.0, gps_pos_x=1.5)) == {"mag"}
+  assert named(_MAG, _peak(mag=2.0, gps_vel_x=2.0), e_gps=1.0) == {"mag", "gps"}
+  # IMU primary: every aiding innovation is explained; the GPS joins only through the dead-reckoning check
+  everything = _peak(gyro_z=2.0, gps_pos_x=2.0, gps_vel_x=2.0, baro=2.0, mag=2.0, flow_x=2.0, accel_z=2.0)
+  assert named(_GYRO, everything, _cons(chi_e=30.0, chi_m=3.0), e_gps=2.0, e_aid=2.0) == {"gyro"}
+  assert named(_GYRO, everything, dr=2.0) == {"gyro", "gps"}
+  # a quiet sensor is never named; multi_diag off: the primary alone
+  assert named(_FLOW, _peak(flow_x=2.0), _cons(chi_e=40.0, chi_m=40.0), e_aid=3.0) == {"flow"}
+  one = dataclasses.replace(diag_cfg, multi_diag=False)
+  assert named(_GPS, gf, e_aid=2.0, cfg=one) == {"gps"}
 
 
 def _level_flight(n, yaw=0.5, speed=5.0, height=15.0, dv=(0.0, 0.0), dbaro=0.0, dmag=0.0, dyaw_ekf=0.0, onset=200):

@@ -79,10 +79,16 @@ def test_loader_errors_are_one_line(tmp_path):
   check(dict(good, h=[-1.0] + good["h"][1:]), "bad h")
   check(dict(good, used=[0.5] + good["used"][1:]), "bad used")
   check(dict(good, channels=good["channels"][::-1]), "has channels")
-  # A good copy loads, and a preset saved from a config round-trips.
-  cfg = detection.DetectorConfig.drone(calibrated=False, h=(9.0,) * detection.N_CHANNELS)
+  check(dict(good, mask_h=[1.0, 2.0]), "bad mask_h")
+  # A good copy loads, and a preset saved from a config round-trips (mask_h too; a file without it: the default).
+  cfg = detection.DetectorConfig.drone(calibrated=False, h=(9.0,) * detection.N_CHANNELS,
+                                       mask_h=(1.0, 1.5, 1.0, 2.0, 1.0, 1.0))
   preset_file.save_preset(cfg, str(tmp_path / "rt.json"), {"note": "test"})
-  assert detection.DetectorConfig.drone(**preset_file.load_preset(str(tmp_path / "rt.json"), "drone")).h == cfg.h
+  back = detection.DetectorConfig.drone(**preset_file.load_preset(str(tmp_path / "rt.json"), "drone"))
+  assert back.h == cfg.h and back.mask_h == cfg.mask_h
+  (tmp_path / "old.json").write_text(json.dumps({k: v for k, v in good.items() if k != "mask_h"}))
+  old = detection.DetectorConfig.drone(**preset_file.load_preset(str(tmp_path / "old.json"), "drone"))
+  assert old.mask_h == detection.DetectorConfig().mask_h
 
 
 @pytest.mark.parametrize("vehicle", VEHICLES)

@@ -13,7 +13,9 @@ residuals in manoeuvres), so a 3 m/s^2 accel-z bias is caught through the GPS ch
 smaller --h-margin trades that against margin.
 GPS cross-checks: dr_h, vel_h, hgt_h = --xcheck-margin (1.2) x the sample maximum of each mission's largest
 |GPS - dead reckoning| (1 s EMA), velocity chi and |GPS height - baro| (3 s EMA) over the same missions; the rover has
-no height check (hgt_h 0: off). Each file's 'meta' records how it was made.
+no height check (hgt_h 0: off). Multi-sensor diagnosis: mask_h [6] = max(mask_h_min, mask_margin x the sensor's
+largest attack-free score at the same quantile) (detection.calibrate, `mask_thresholds`). Each file's 'meta' records
+how it was made.
 """
 
 from __future__ import annotations
@@ -111,6 +113,7 @@ def calibrate_vehicle(vehicle: str, missions: int = 1024, seconds: float = 135.0
           "whole_missions": float(np.mean(end < seconds - 1e-3)),
           "n_fresh": [int(x) for x in n_fresh], "h_raw": [float(x) for x in h_raw],
           "xcheck_margin": xcheck_margin, "xcheck_raw": [float(x) for x in x_raw],
+          "mask_margin": base.mask_margin, "mask_h_min": base.mask_h_min,
           "xcheck_max_per_mission_q50_q90_q99_max": [[float(v) for v in np.quantile(xmax[:, j], [0.5, 0.9, 0.99, 1.0])]
                                                      for j in range(3)],
           "in_sample_false_alarms": float(np.mean((mission_score > 1.0)
@@ -158,6 +161,7 @@ def main(argv=None):
     if u:
       print(f"  {c:10s} scale {s:9.4g}  h {h:8.2f}")
   print(f"  GPS cross-checks: dr_h {cfg.dr_h:.2f} m, vel_h {cfg.vel_h:.2f}, hgt_h {cfg.hgt_h:.2f} m")
+  print("  diagnosis mask_h: " + ", ".join(f"{n} {x:.2f}" for n, x in zip(det.SENSOR_NAMES, cfg.mask_h)))
 
 
 if __name__ == "__main__":

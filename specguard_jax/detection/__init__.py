@@ -2,4 +2,4 @@
 
 from specguard_jax.detection.detector import (  # noqa: F401
     CHANNEL_SENSOR, CHANNELS, N_CHANNELS, DetectorConfig, DetectorState, calibrate, consistency, cusum_step,
-    detector_init, detector_update, diagnose, oracle_update, residuals)
+    detector_init, detector_update, diagnose, diagnose_mask, oracle_update, residuals)

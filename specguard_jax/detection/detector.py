@@ -58,6 +58,41 @@ body z and the centripetal force (odometry speed x bicycle-model yaw rate) on bo
 (the aiding pattern of an accelerometer bias) but leaves the accelerometer on that model, an accelerometer bias does
 not (`acc_z_tol`, `acc_y_tol`).
 
+Multi-sensor diagnosis (`diagnose_mask`; `mask` [6], every sensor found compromised; `diagnosis` stays the primary,
+the strongest one, chosen as above). The primary is always in the mask. Another sensor joins it when its own evidence
+passes its own threshold and the primary's attack cannot have produced that evidence; the rule follows the causal
+graph above (a compromised sensor disturbs everything downstream of what it feeds, so evidence downstream of the
+primary is explained, and only checks that bypass the primary can name a second sensor):
+  * own evidence: the peak score of the sensor's own channels (GPS position / velocity, baro, mag heading, flow x/y;
+    IMU-model channels) >= mask_h[s] (score units; calibrated on attack-free missions, `mask_thresholds`).
+  * IMU primary (gyro / accel): its prediction drifts from every aiding sensor, so aiding innovations, the velocity
+    checks and the complementary filters are all explained. Only the GPS can join, when the GPS-free dead reckoning
+    (which a blamed IMU no longer pulls to the GPS) also disagrees (`dr_h`); the other IMU sensor never joins (a
+    biased IMU tumbles the vehicle off both IMU models). No listening after the window (below).
+  * GPS: under an aiding primary, a position jump that the GPS velocity channels did not lead (an aiding velocity or
+    heading attack moves the prediction's velocity first), the dead-reckoning check (not under a flow primary, whose
+    flow the dead reckoning integrates), or the GPS velocity moving off the IMU filter (`gps_moved`; the GPS's own
+    velocity, which a height / flow attack does not move; gps_ratio x the aiding filter's but under a flow
+    primary); under a mag primary not the dead reckoning (it rotates the flow by the EKF or the magnetometer
+    heading, both of which a magnetometer attack turns).
+  * baro: under a GPS primary, only while the GPS vertical channels are quiet or not above the baro's (a GPS height
+    spoof drags the EKF height into the baro innovation); under a mag primary its innovation; under others also the
+    GPS-vs-baro height check with the GPS not named.
+  * mag: not under an IMU primary (a gyro bias turns the EKF heading); under a GPS primary only with the GPS velocity
+    agreeing with the flow better in the EKF's heading than in the magnetometer's (a spoof's corrections turn the
+    EKF heading a little).
+  * flow: its innovation and its complementary-filter innovation (`aid_blame`: the flow velocity moved without the
+    IMU; a GPS spoof moves the EKF velocity, not the flow); not under an IMU or a baro primary (the baro scales the
+    flow velocity).
+  * parsimony: mag and flow named together under a GPS primary are the one gyro's (a gyro bias that hid from its
+    model channels turns the heading and moves the flow velocity off the IMU; `diagnose` uses that pattern too).
+The evidence is the diagnosis window's; after it, for `mask_listen_s` (aiding primaries only), each tick's scores and
+checks are read on top of it and a sensor once named stays named while the alarm and the primary stay (a stealthy
+second ramp shows seconds after the first sensor raised the alarm). The rover has no flow: its GPS checks run on the
+wheel odometry. Known limits: a stealthy baro ramp beside a GPS spoof is named only through its own innovation (the
+height check cannot tell it from the spoof's vertical part); a gyro ramp that hides from its model channels beside a
+GPS spoof is named only through the parsimony rule. `multi_diag=False`: the mask is the primary alone.
+
 Recovery switch: the alarm clears (control handed back) once every score stays below `clear_frac` for `hold_s` (an
 alarm of the cross-checks alone also waits for the velocity and height cross-checks to agree again); on hand-back
 the dead reckoning restarts at the GPS and the velocity and height cross-checks restart.
@@ -92,6 +127,7 @@ CHANNEL_SENSOR = (0, 0, 0, 0, 0, 0, _S["baro"], _S["mag"], _S["flow"], _S["flow"
                   _S["accel"], _S["accel"], _S["accel"], _S["gyro"], _S["gyro"], _S["gyro"])
 _GPS_H = np.array([1, 1, 0, 1, 1, 1] + [0] * 11, np.float32)   # GPS horizontal position + velocity channels
 _GPS_Z = 2
+_BARO_CH = ekf_lib.CHANNELS.index("baro")
 _MAG_CH, _FLOW_CH = ekf_lib.CHANNELS.index("mag"), ekf_lib.CHANNELS.index("flow_x")   # flow_x, flow_y adjacent
 _IMU0 = len(ekf_lib.CHANNELS)
 N_XCHK = 6   # position_check's xchk entries
@@ -169,6 +205,14 @@ class DetectorConfig:
   acc_z_tol: float = 0.15           # m/s^2; rover: the accelerometer is off the level-vehicle model (`residuals`'
   acc_y_tol: float = 1.0            #   acc_e: body z vs gravity, body y vs centripetal) by this much (see `diagnose`)
   xcheck_window_s: float = 1.0      # s; diagnosis window of an alarm raised by the cross-checks alone
+  # Multi-sensor diagnosis (`diagnose_mask`): the mask names the primary (`diagnose`) and every other sensor whose
+  # evidence unexplained by the primary reaches mask_h [6] (SENSOR_NAMES order, score units: 1 = the sensor's
+  # channels' own calibrated CUSUM threshold; calibrated, preset_file). multi_diag False: the mask is the primary's.
+  multi_diag: bool = True
+  mask_h: tuple = (1.0,) * N_SENSORS
+  mask_listen_s: float = 5.0        # s; after the diagnosis window the mask keeps adding sensors this long
+  mask_margin: float = 3.0          # calibration: mask_h = max(mask_h_min, mask_margin x the attack-free per-mission
+  mask_h_min: float = 1.0           #   maximum of the sensor's evidence at calibrate's quantile)
   mass: float = 1.5
   inertia: tuple = (0.029125, 0.029125, 0.055225)
   rotor_xy: tuple = ()
@@ -228,7 +272,8 @@ class DetectorState:
   cusum: [C] CUSUM statistic (normalised units).  scores: [C] cusum / h (alarm when any > 1).
   residual: [C] last normalised |residual| (held on channels without a fresh sample).
   peak: [C] max score during the diagnosis window of the current alarm.
-  alarm: [] bool.  diagnosis: [] int32 index into SENSOR_NAMES (-1: none).  mask: [6] 0/1 diagnosed sensors.
+  alarm: [] bool.  diagnosis: [] int32 index into SENSOR_NAMES (-1: none), the primary (strongest) compromised
+  sensor.  mask: [6] 0/1 every sensor diagnosed compromised (`diagnose_mask`; includes `diagnosis`).
   time_since_alarm: [] s since the current alarm was raised (0 without alarm).  quiet_time: [] s all scores have
   been below clear_frac.  n_alarms: [] int32 alarms raised so far.  time: [] s since init.
   Model state: baseline [6] (IMU residual baseline), rate_model [3] (gyro observer, rad/s), airborne_time [] s.
@@ -635,6 +680,77 @@ def diagnose(cfg: DetectorConfig, peak, cons=None, xpeak=None, xraised=False, se
   return out.astype(jnp.int32)
 
 
+def sensor_evidence(cfg: DetectorConfig, peak):
+  """[6] per-sensor evidence (SENSOR_NAMES order): the peak score (`peak` [C], used channels) of the sensor's own
+  channels (CHANNEL_SENSOR: GPS position/velocity, baro, mag heading, flow x/y, the IMU-model channels)."""
+  p = jnp.asarray(peak, jnp.float32) * jnp.asarray(cfg.used, jnp.float32)
+  sensor = np.asarray(CHANNEL_SENSOR)
+  onehot = np.stack([(sensor == i) for i in range(N_SENSORS)]).astype(np.float32)   # [6, C]
+  return jnp.max(onehot * p[None, :], axis=-1)
+
+
+def diagnose_mask(cfg: DetectorConfig, primary, peak, cons=None, xpeak=None):
+  """[6] 0/1 mask of the sensors found compromised: the primary `diagnose` pick (int32 [], `primary`) and every
+  other sensor with evidence of its own that the primary's attack cannot explain (see the module docstring,
+  "Multi-sensor diagnosis"). peak [C], cons [5], xpeak [N_XCHK]: the diagnosis window's evidence as for `diagnose`."""
+  f32 = jnp.float32
+  prim = jax.nn.one_hot(primary, N_SENSORS, dtype=f32)
+  if not cfg.multi_diag:
+    return prim
+  p = jnp.asarray(peak, f32) * jnp.asarray(cfg.used, f32)
+  cons = jnp.zeros(5, f32) if cons is None else jnp.asarray(cons, f32)
+  xpeak = jnp.zeros(N_XCHK, f32) if xpeak is None else jnp.asarray(xpeak, f32)
+  own = sensor_evidence(cfg, peak) >= jnp.asarray(cfg.mask_h, f32)        # [6] own channels past their threshold
+  gps_pos_h, gps_vel = jnp.max(p[0:2]), jnp.max(p[3:6])
+  gps_z = jnp.maximum(p[_GPS_Z], p[5])
+  dr_off = xpeak[0] >= 1.0        # GPS left the GPS-free dead reckoning (flow / odometry, any height / heading)
+  e_gps, e_aid = xpeak[2], xpeak[3]          # complementary IMU filters: GPS / aiding velocity moved, IMU did not
+  chi_e, chi_m, av_v = cons[0], cons[1], cons[3] > 0.5
+  hgt_off = (cons[4] > 0.5) & (cons[2] >= jnp.where(cfg.hgt_h > 0, cfg.hgt_h, cfg.gps_baro_tol))
+  mag_off = av_v & (chi_m >= jnp.maximum(cfg.cons_thr, 2.0 * chi_e))     # GPS agrees with the flow under the EKF
+  is_ = lambda n: primary == _S[n]                                        #   heading, not the magnetometer's
+  imu_p = is_("gyro") | is_("accel")
+  # GPS: a position jump the velocity channels did not lead (an IMU bias or an aiding velocity attack moves the
+  # prediction's velocity first), or the GPS-free dead reckoning disagrees (not under a flow primary: it integrates
+  # the flow), or the GPS velocity moved without the IMU (not under an IMU primary: the IMU filters drift with it).
+  # Not the dead reckoning under a mag primary: it rotates the flow by the EKF or the magnetometer heading, both of
+  # which a magnetometer attack turns (the IMU filter, pulled to the GPS velocity itself, drifts little meanwhile).
+  # The GPS filter's innovation counts when it is gps_ratio x the aiding filter's (both moving alike: the EKF
+  # attitude the IMU filters share drifted, e.g. in a long baro alarm), unless the primary is the flow (whose
+  # attack moves the aiding filter).
+  jump = (gps_pos_h >= 1.0) & (gps_vel < 1.0)
+  gps = jnp.where(imu_p, own[_S["gps"]] & dr_off,
+                  (own[_S["gps"]] & jump) | (dr_off & ~is_("flow") & ~is_("mag"))
+                  | ((e_gps >= cfg.gps_moved) & (is_("flow") | (e_gps >= cfg.gps_ratio * e_aid))))
+  # Barometer: its own innovation, not explained by a GPS height spoof (the GPS vertical channels are quiet or not
+  # stronger) and, under an IMU or flow primary (both move the EKF height), confirmed by the GPS-vs-baro height check.
+  baro = own[_S["baro"]] & jnp.where(is_("gps"), (gps_z < 1.0) | (p[_BARO_CH] >= gps_z),
+                                     jnp.where(is_("mag"), True, hgt_off & ~gps))
+  # Magnetometer: its heading innovation (the heading is its own state: baro / flow attacks barely turn it); under a
+  # GPS primary (a spoof's velocity corrections turn the EKF heading) only when the GPS velocity agrees with the flow
+  # better under the EKF's heading than under the magnetometer's; not under an IMU primary (a gyro bias turns the
+  # EKF heading away from the magnetometer, and a tumbling vehicle's EKF attitude fails both heading frames).
+  mag = own[_S["mag"]] & ~imu_p & (mag_off | ~is_("gps"))
+  # Optical flow: its innovation and a flow velocity that moved without the IMU seeing it (complementary filter; a
+  # GPS spoof moves the EKF velocity, not the flow); not under an IMU primary (the IMU filters drift with the IMU)
+  # nor a baro primary (the baro scales the flow velocity, in the EKF and in the complementary filter alike).
+  flow = own[_S["flow"]] & ~imu_p & ~is_("baro") & (e_aid >= cfg.aid_blame) & (cfg.vehicle == "drone")
+  # IMU sensors are the primary's (`diagnose` blames an IMU whose model evidence reaches imu_blame); the other IMU
+  # sensor is explained by the primary one (a biased IMU tumbles the vehicle off both models). A gyro bias that hid
+  # from its model channels turns the EKF heading (mag evidence) AND moves the flow velocity off the IMU filter:
+  # heading and flow named together under a GPS primary are the one gyro's (the fewest sensors that explain the
+  # evidence).
+  second = jnp.stack([gps, jnp.zeros((), bool), jnp.zeros((), bool), mag, baro, flow])   # SENSOR_NAMES order
+  return _parsimony(primary, jnp.maximum(prim, second.astype(f32)))
+
+
+def _parsimony(primary, mask):
+  """Heading (mag) and flow named together beside a GPS primary are one gyro bias that hid from its model channels:
+  `mask` [6] with them replaced by the gyro (applied to the latched mask too, `_switch`)."""
+  both = (primary == _S["gps"]) & (mask[_S["mag"]] > 0) & (mask[_S["flow"]] > 0)
+  return jnp.where(both, mask.at[_S["gyro"]].set(1.0).at[_S["mag"]].set(0.0).at[_S["flow"]].set(0.0), mask)
+
+
 def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=False, cons=None, xchk=None,
             x_raised=False):
   """Alarm latch + diagnosis window + recovery hold (`hold` [] bool: an outside check, e.g. state reconstruction's,
@@ -671,7 +787,18 @@ def _switch(cfg: DetectorConfig, state: DetectorState, scores, raised, dt, hold=
           & (tsa <= cfg.xcheck_window_s + cfg.hgt_listen_s))
   xpeak = xpeak.at[1].set(jnp.where(late, jnp.maximum(xpeak[1], xchk[0]), xpeak[1]))
   diag = jnp.where(alarm, diagnose(cfg, peak, cpeak, xpeak, xraised, alarm & ~in_window), -1).astype(jnp.int32)
-  mask = jnp.where(alarm, jax.nn.one_hot(jnp.maximum(diag, 0), N_SENSORS), 0.0)
+  # The mask: the window's evidence, then for mask_listen_s more this tick's evidence on top of it (a second sensor's
+  # ramp may show only seconds after the first raised the alarm); a sensor once named stays named while the alarm
+  # and the primary stay (a new primary starts a new mask). Not after an IMU primary: a biased IMU's prediction (and
+  # the vehicle it flies) drifts away from every aiding sensor over time, in the cross-checks too.
+  imu_p = (diag == _S["gyro"]) | (diag == _S["accel"])
+  listen = alarm & ~start & ~in_window & ~imu_p & (tsa <= jnp.where(xraised, cfg.xcheck_window_s, cfg.diag_window_s)
+                                                   + cfg.mask_listen_s)
+  now = diagnose_mask(cfg, jnp.maximum(diag, 0), jnp.where(listen, jnp.maximum(peak, scores), peak),
+                      jnp.where(listen, jnp.maximum(cpeak, cons), cpeak), jnp.where(listen, jnp.maximum(xpeak, xchk),
+                                                                                   xpeak))
+  keep = state.alarm & ~start & (diag == state.diagnosis)
+  mask = jnp.where(alarm, jnp.where(keep, _parsimony(diag, jnp.maximum(state.mask, now)), now), 0.0)
   return dict(alarm=alarm, peak=peak, cpeak=cpeak, xpeak=xpeak, xraised=xraised, diagnosis=diag, mask=mask,
               time_since_alarm=tsa, quiet_time=jnp.where(clear, 0.0, quiet_time),
               n_alarms=state.n_alarms + start.astype(jnp.int32))
@@ -757,9 +884,24 @@ def calibrate(cfg: DetectorConfig, residual_traces, fresh, target_fpr: float = 0
   used = np.asarray(cfg.used, np.float32)
   n_used = max(1.0, float(used.sum()))
   q = float(np.clip(1.0 - target_fpr / n_used, 0.0, 1.0))
-  scale, h_raw, _, n_fresh = jax.device_get(calibration_stats(jnp.asarray(residual_traces, jnp.float32),
-                                                               jnp.asarray(fresh, bool), cfg.k_quantile, q))
+  scale, h_raw, max_s, n_fresh = jax.device_get(calibration_stats(jnp.asarray(residual_traces, jnp.float32),
+                                                                   jnp.asarray(fresh, bool), cfg.k_quantile, q))
   used = used * (np.asarray(n_fresh) > 0)
   h = np.maximum(cfg.h_min, cfg.h_margin * np.asarray(h_raw))
-  return dataclasses.replace(cfg, scale=tuple(float(x) for x in scale), h=tuple(float(x) for x in h),
-                             used=tuple(float(x) for x in used), k=1.0)
+  cfg = dataclasses.replace(cfg, scale=tuple(float(x) for x in scale), h=tuple(float(x) for x in h),
+                            used=tuple(float(x) for x in used), k=1.0)
+  return dataclasses.replace(cfg, mask_h=mask_thresholds(cfg, max_s, q))
+
+
+def mask_thresholds(cfg: DetectorConfig, max_s, q: float) -> tuple:
+  """Calibrated `mask_h` [6] from attack-free missions: max_s [M, C] each mission's maximum CUSUM statistic per
+  channel (calibration_stats); a sensor's evidence is its channels' score (S / h, capped as in `cusum_step`), so
+  mask_h = max(mask_h_min, mask_margin x the q quantile over missions of the sensor's largest score). Sensors without
+  a used channel keep 1."""
+  score = np.minimum(np.asarray(max_s, np.float32) / np.asarray(cfg.h, np.float32), cfg.cap)
+  score = score * np.asarray(cfg.used, np.float32)                                     # [M, C]
+  sensor = np.asarray(CHANNEL_SENSOR)
+  has = np.array([np.any((sensor == i) & (np.asarray(cfg.used) > 0)) for i in range(N_SENSORS)])
+  ev = np.stack([np.max(np.where(sensor == i, score, 0.0), axis=-1) for i in range(N_SENSORS)], -1)   # [M, 6]
+  raw = np.quantile(ev, q, axis=0, method="higher") if ev.shape[0] else np.zeros(N_SENSORS)
+  return tuple(float(x) for x in np.where(has, np.maximum(cfg.mask_h_min, cfg.mask_margin * raw), 1.0))

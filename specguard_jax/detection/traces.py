@@ -91,25 +91,30 @@ def xcheck_trace(cfg: det.DetectorConfig, trace: TickTrace, dt: float):
 @functools.partial(jax.jit, static_argnames=("cfg", "dt"))
 def run_detector(cfg: det.DetectorConfig, trace: TickTrace, dt: float):
   """Replays `detector_update` over a batch of traces. Returns dict of [B, T] arrays: alarm, diagnosis,
-  max_score; and [B, T, C] scores."""
+  max_score; [B, T, C] scores; and [B, T, 6] mask (the diagnosed sensors, SENSOR_NAMES order)."""
 
   def one(tr):
     def body(state, x):
       rd, ek, act = x
       state = det.detector_update(cfg, state, rd, ek, act, dt)
-      return state, (state.alarm, state.diagnosis, state.scores)
-    _, (alarm, diag, scores) = jax.lax.scan(body, det.detector_init(cfg), (tr.readings, tr.ekf, tr.actuation))
-    return {"alarm": alarm, "diagnosis": diag, "scores": scores, "max_score": jnp.max(scores, axis=-1)}
+      return state, (state.alarm, state.diagnosis, state.scores, state.mask)
+    _, (alarm, diag, scores, mask) = jax.lax.scan(body, det.detector_init(cfg), (tr.readings, tr.ekf, tr.actuation))
+    return {"alarm": alarm, "diagnosis": diag, "scores": scores, "max_score": jnp.max(scores, axis=-1), "mask": mask}
 
   return jax.vmap(one)(trace)
 
 
-def detection_metrics(alarm, diagnosis, trace: TickTrace, attack, diag_delay_ticks: int = 0):
-  """Per-mission outcomes (numpy-able [B] arrays). alarm, diagnosis [B, T]; attack: batched AttackSchedule.
+def detection_metrics(alarm, diagnosis, trace: TickTrace, attack, diag_delay_ticks: int = 0, mask=None,
+                      mask_delay_ticks: int | None = None):
+  """Per-mission outcomes (numpy-able [B] arrays). alarm, diagnosis [B, T]; attack: batched AttackSchedule;
+  mask: [B, T, 6] the detector's diagnosed-sensor mask (run_detector's 'mask'), optional.
 
   false_alarm: an alarm before the onset (or anywhere, attack-free).  detected: an alarm raised while the attack is on
   (and no false alarm).  delay: s from onset to the first alarm after it (nan if none).  correct: the diagnosis on
   the first alarm tick after onset + diag_delay_ticks (the diagnosis window) is a sensor of the attack mask.
+  With `mask`, at the last tick up to mask_delay_ticks (default diag_delay_ticks) after the first alarm where the alarm
+  is up and the mission valid: mask_at [B, 6] the diagnosed mask (0/1); mask_exact [B] it equals the attack mask
+  (and the mission is detected).
   """
   valid = trace.valid
   t = trace.time
@@ -125,4 +130,14 @@ def detection_metrics(alarm, diagnosis, trace: TickTrace, attack, diag_delay_tic
   d_first = jnp.take_along_axis(diagnosis, at[:, None], axis=-1)[:, 0]
   hit = jnp.take_along_axis(attack.mask, jnp.maximum(d_first, 0)[:, None], axis=-1)[:, 0] > 0
   correct = detected & (d_first >= 0) & hit
-  return {"false_alarm": false_alarm, "detected": detected, "delay": delay, "correct": correct}
+  out = {"false_alarm": false_alarm, "detected": detected, "delay": delay, "correct": correct}
+  if mask is not None:
+    # the last tick of that span with the alarm up on a valid mission (an alarm can clear and rise again)
+    span = diag_delay_ticks if mask_delay_ticks is None else mask_delay_ticks
+    ticks = jnp.arange(alarm.shape[-1])
+    ok = alarm & valid & (ticks >= first[:, None]) & (ticks <= first[:, None] + span)
+    at_m = jnp.max(jnp.where(ok, ticks, 0), axis=-1)
+    m_at = jnp.take_along_axis(jnp.asarray(mask), at_m[:, None, None], axis=1)[:, 0] > 0.5
+    out["mask_at"] = m_at
+    out["mask_exact"] = detected & jnp.all(m_at == (attack.mask > 0.5), axis=-1)
+  return out
