@@ -99,13 +99,14 @@ class SensorConfig:
   baro_sigma: float = 0.3  # m
   baro_drift_walk: float = 0.01  # m/sqrt(s)
   # optical flow: a PMW3901 / PAA3905-class flow sensor with a time-of-flight range finder (ARK Flow: PAA3905 +
-  # Broadcom AFBR-S50LV85D, typical range up to 30 m). Valid heights: from the flow sensor's 80 mm working distance
-  # (PixArt PMW3901MB datasheet; PX4 SENS_FLOW_MINHGT default 0.08 m) to the range finder's reach (PX4
-  # SENS_FLOW_MAXHGT: above it the estimator cannot scale the flow).
+  # Broadcom AFBR-S50LV85D, typical range up to 30 m). Valid heights: from 0.3 m (the PX4FLOW driver's
+  # PX4FLOW_MIN_DISTANCE; the flow sensors focus from 80 mm, PixArt PMW3901MB datasheet / PX4 SENS_FLOW_MINHGT 0.08 m,
+  # but the range finder and the EKF (EKFConfig.flow_min_height) and detector use 0.3 m) to the range finder's reach
+  # (PX4 SENS_FLOW_MAXHGT: above it the estimator cannot scale the flow).
   has_flow: bool = True
   flow_rate: float = 25.0
   flow_sigma: float = 0.05  # rad/s
-  flow_min_height: float = 0.08  # m
+  flow_min_height: float = 0.3  # m
   flow_max_height: float = 30.0  # m
   # Scale-factor error per axis (lens focal length, mounting, range-finder scale): ArduPilot exposes FLOW_FXSCALER /
   # FLOW_FYSCALER with a ±200 ‰ range to correct it; σ 5 % is an assumed residual of a typical setup.
