@@ -12,7 +12,9 @@ Built in:
                       one trained with pc (BuildContext.run_dir for the variant asked, see `run_for`).
   delorean            the "without recovery policy" ablation = DeLorean: residual detector, selective state
                       reconstruction, reactive mode with a zero residual policy: the autopilot flies on the
-                      reconstructed state.
+                      reconstructed state (the reconstruction mode: evaluate.py --recon, default "fused").
+  delorean_paper      the same with the paper's reconstruction (EnvConfig.recon_mode "paper": the fitted model
+                      rolled forward open loop from the checkpoint), whatever --recon says.
   specguard_no_recon  ablation: the run's policy with state reconstruction off.
 Other packages register more (`specguard_jax.baselines`, imported lazily by `available()` / `build()`).
 A builder that cannot build (e.g. its training run is missing) raises `NotAvailable(reason)`: the report lists the
@@ -212,6 +214,13 @@ def _delorean(ctx: BuildContext) -> Controller:
                     "reconstruction, the autopilot flies on the reconstructed state")
 
 
+def _delorean_paper(ctx: BuildContext) -> Controller:
+  c = _delorean(ctx)
+  return dataclasses.replace(c, name="delorean_paper", env_overrides=c.env_overrides + (("recon_mode", "paper"),),
+                             description="DeLorean with the paper's reconstruction: the fitted model rolled forward "
+                                         "open loop from the last trusted checkpoint for the compromised components")
+
+
 def _no_recon(ctx: BuildContext) -> Controller:
   d = ctx.run("specguard_no_recon")
   if d:   # a run trained without reconstruction (train.py --no-reconstruction)
@@ -237,5 +246,6 @@ register("no_protection", _no_protection, "the autopilot alone")
 register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)")
 register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)")
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
+register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop reconstruction (recon_mode paper)")
 register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)")
 register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)")

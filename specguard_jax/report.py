@@ -226,6 +226,9 @@ def markdown(rep) -> str:
        "or crashed); RSR = completed within 5 m of the last waypoint without crash/collision/stall, over missions "
        "under attack; MD = (T - T_GT) / T_b x 100 over completed missions; definitions in specguard_jax/metrics.py. "
        "All values in %, 95 % Wilson intervals in report.json.", ""]
+  if meta.get("recon_modes"):
+    L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
+        f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
   if rep["skipped_experiments"]:

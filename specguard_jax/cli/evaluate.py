@@ -28,7 +28,7 @@ import subprocess
 import sys
 import time
 
-from specguard_jax.types import VEHICLES
+from specguard_jax.types import RECON_MODES, VEHICLES
 
 RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "specguard_no_recon", "suburban", "urban", "rover")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
@@ -56,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--vehicle", choices=VEHICLES, help="default: the run's vehicle, else drone")
   p.add_argument("--seed", type=int, default=10_000, help="mission/attack/noise seed (unseen by training)")
   p.add_argument("--suite", choices=("paper",), help="run every experiment of the paper our code can run")
+  p.add_argument("--recon", choices=RECON_MODES,
+                 help="state reconstruction mode of the controllers that reconstruct and do not fix one themselves "
+                      "(delorean, specguard_*; EnvConfig.recon_mode): fused (default) or paper")
   p.add_argument("--max-s", type=float, default=400.0, help="episode cap (s)")
   p.add_argument("--mission-s", help="LO,HI mission duration bounds (s) instead of the vehicle preset (small runs)")
   p.add_argument("--traj", type=int, default=2, help="missions per setting whose trajectories are recorded")
@@ -243,6 +246,8 @@ def main(argv=None) -> int:
   jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s)}
+    if args.recon:
+      base["recon_mode"] = args.recon
     if p["mission_s"]:
       mk = MissionConfig.drone if g["vehicle"] == "drone" else MissionConfig.rover
       base["mission"] = mk(min_duration_s=p["mission_s"][0], max_duration_s=p["mission_s"][1])
@@ -267,7 +272,7 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
-      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **base, **ctrl.overrides())))
+      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})))
   bar.show(f"compiling {len(jobs)} rollouts")
   compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
                             "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,
@@ -284,7 +289,8 @@ def main(argv=None) -> int:
     trajs[(gname, ctrl.name)] = traj
     grp["controllers"][ctrl.name] = {"description": ctrl.description,
                                      "env_overrides": {k: R.jsonable(v) for k, v in ctrl.env_overrides},
-                                     "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps}
+                                     "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps,
+                                     "recon_mode": env.config.recon_mode if env.config.reconstruction else None}
     results["rollouts"].append({"group": gname, "controller": ctrl.name, "missions": int(len(rec["complete"])),
                                 **timing})
     bar.step(f"{gname}: {ctrl.name} done")
@@ -299,7 +305,9 @@ def main(argv=None) -> int:
           "device": str(jax.devices()[0]), "git_commit": _git_commit(), "seed": args.seed,
           "missions_per_setting": missions, "max_s": args.max_s, "mission_s": p["mission_s"], "run": args.run,
           "runs": p["runs"], "suite": args.suite, "profiles": list(p["profiles"]),
-          "simulator": "specguard-jax MJX simulator (not AirSim)"}
+          "simulator": "specguard-jax MJX simulator (not AirSim)", "recon": args.recon or "fused",
+          "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
+                          for c, v in grp["controllers"].items()}}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
   report["meta"]["eval_wall_s"] = wall
