@@ -255,8 +255,8 @@ class RAVEnv(Env):
     """The reconstruction's ReconConfig. Paper mode: the checkpoint must predate the attack's effect on the estimate,
     since nothing corrects the model's roll-out from it, so its lag covers the detector's delay: the oracle's
     configured delay (detector_delay), or the residual detector's diagnosis windows (DetectorConfig.diag_window_s /
-    xcheck_window_s, the time it collects evidence after the alarm, which its overt-attack delays stay under);
-    at least PAPER_LAG_S; checked by recon.check_lag. Fused mode: the defaults (its shadow filter corrects what a
+    xcheck_window_s: it has no fixed delay; its median overt-attack delays are well under these windows, a stealthy
+    ramp's can be longer and then reaches the checkpoint); at least PAPER_LAG_S; checked by recon.check_lag. Fused mode: the defaults (its shadow filter corrects what a
     short lag lets through)."""
     cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg, mode=self.config.recon_mode)
     if cfg.mode != "paper":
