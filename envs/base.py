@@ -264,7 +264,8 @@ class RAVEnv(Env):
     delay = (self.config.detector_delay if self.config.detector == "oracle"
              else max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s))
     lag = int(np.ceil(max(PAPER_LAG_S, delay) / self.config.tick_dt - 1e-6))
-    cfg = dataclasses.replace(cfg, lag=lag, window=max(cfg.window, lag + 1))
+    calib = int(round(cfg.paper_calib_s / self.config.tick_dt))   # entries before the checkpoint, for calibration
+    cfg = dataclasses.replace(cfg, lag=lag, window=max(cfg.window, lag + 1 + calib))
     recon_lib.check_lag(cfg, delay, self.config.tick_dt)
     return cfg
 

@@ -4,6 +4,8 @@ constant in the body frame, no angular dynamics) the reconstructed position is t
 shows as the error b tau^2 / 2 (tau: time since the checkpoint), the uncompromised components stay the EKF's, and the
 checkpoint lag covers the detector's delay."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,22 +49,23 @@ def _truth(k):
 
 @pytest.fixture(scope="module")
 def runs():
-  """{model bias name: per-tick (x_rec, x_meas, ReconState, trusted EKFState)} of the GPS blamed for N_ALARM ticks,
+  """{model name: per-tick (x_rec, x_meas, ReconState, trusted EKFState)} of the GPS blamed for N_ALARM ticks,
   the autopilot's EKF on the true trajectory (what the checkpoint records)."""
   cfg = recon.ReconConfig(n_controls=4, ekf=ekf_lib.EKFConfig.drone(), mode="paper", window=50, lag=10)
+  raw = dataclasses.replace(cfg, paper_calibrate=False)
   e0 = ekf_lib.ekf_init(cfg.ekf, _readings(0)).replace(quat=jnp.array([1.0, 0.0, 0.0, 0.0]))   # level, yaw 0
   mask_gps = jnp.zeros(len(SENSOR_NAMES)).at[SENSOR_NAMES.index("gps")].set(1.0)
   u = jnp.full((4,), 3.7)
   out = {}
-  for name, acc in (("exact", A_TRUE), ("biased", A_TRUE + BIAS)):
+  for name, acc, c in (("exact", A_TRUE, cfg), ("biased", A_TRUE + BIAS, raw), ("calibrated", A_TRUE + BIAS, cfg)):
     params = _model(acc)
 
     @jax.jit
-    def tick(st, k, alarm):
+    def tick(st, k, alarm, c=c, params=params):
       pos, vel = _truth(k)
       e = e0.replace(pos=jnp.asarray(pos, jnp.float32), vel=jnp.asarray(vel, jnp.float32))
       rd = _readings(k)
-      st, x, est, _ = recon.recon_tick(cfg, params, st, e, rd, u, jnp.where(alarm, mask_gps, 0.0), alarm, DT)
+      st, x, est, _ = recon.recon_tick(c, params, st, e, rd, u, jnp.where(alarm, mask_gps, 0.0), alarm, DT)
       return st, x, recon.input_vector(e, rd), est
 
     st = recon.recon_init(cfg, e0)
@@ -74,9 +77,11 @@ def runs():
   return cfg, out
 
 
-def test_exact_model_reconstructs_the_analytic_trajectory(runs):
+@pytest.mark.parametrize("name", ["exact", "calibrated"])
+def test_exact_model_reconstructs_the_analytic_trajectory(runs, name):
+  """The exact model, or the biased one with its offset identified on the trusted entries before the checkpoint."""
   cfg, out = runs
-  rows = out["exact"]
+  rows = out[name]
   for k in range(N_PRE, N_PRE + N_ALARM):
     x, xm, st, _ = rows[k]
     pos, vel = _truth(k)
@@ -110,7 +115,7 @@ def test_uncertainty_grows_with_time_since_checkpoint(runs):
   rows = out["biased"]
   std = np.array([np.asarray(recon.recon_std(rows[k][2])) for k in range(N_PRE, N_PRE + N_ALARM)])
   assert np.all(np.diff(std[:, 0]) > 0) and np.all(np.diff(std[:, 1]) > 0)   # position, velocity
-  # ... and covers the model's drift (a 0.2 m/s^2 bias against the 0.7 m/s^2 persistent sigma)
+  # ... and covers the uncalibrated model's drift (a 0.2 m/s^2 bias: paper_accel_bias_sigma and the residuals)
   x, _, st, _ = rows[N_PRE + N_ALARM - 1]
   assert std[-1, 0] > np.abs(x[:3] - _truth(N_PRE + N_ALARM - 1)[0]).max()
   # alarm down again: the autopilot EKF's own uncertainty

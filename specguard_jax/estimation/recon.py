@@ -30,7 +30,7 @@ system-identification model alone. When the alarm rises, the checkpoint `lag` en
 forward through the model over the buffered commanded controls, and from then on the model is integrated OPEN LOOP
 over the commanded controls, every tick, with no correction from any sensor (`_paper_tick`). The compromised
 components of x'_t (SENSOR_DEPS of the diagnosis mask) are the model's; the uncompromised ones stay the autopilot
-EKF's / the readings' (selective output as above). The checkpoint lag must cover the detector's delay, or the
+EKF's / the readings' (selective output as above), and are the model's inputs for them at the next step. The checkpoint lag must cover the detector's delay, or the
 checkpoint already holds the attack (`check_lag`). The model's uncertainty grows with the time since the checkpoint
 (ReconState.ckpt_age; `_paper_variances`), and is carried in the trusted estimate's covariance (`recon_std`).
 """
@@ -144,8 +144,16 @@ class ReconConfig:
   # rms_ang) act as white errors per tick; on top, a persistent specific-force error over one reconstruction: the
   # per-episode randomisation the fit averages over (mass +-10 %, thrust gain +-8 %: uniform, ~0.7 m/s^2 at hover
   # combined; drag +-30 %, wind), and a persistent angular-acceleration error (inertia +-10 % of the commanded torques).
-  paper_accel_bias_sigma: float = 0.7   # m/s^2
+  paper_accel_bias_sigma: float = 0.2   # m/s^2 (after paper_calibrate; 0.7 without it)
   paper_alpha_bias_sigma: float = 0.05  # rad/s^2
+  # The fitted model is the fleet's (fitted over randomised vehicles), the paper's / DeLorean's the vehicle's own: the
+  # paper mode identifies this vehicle's specific-force offset (body frame, m/s^2) from the model on the trusted
+  # ring entries up to the checkpoint (`_paper_force_bias`; the env's ring holds paper_calib_s of them before it).
+  paper_calibrate: bool = True
+  paper_calib_s: float = 2.0
+  # Body-rate clamp of the paper mode's model (rad/s): PX4's MC_ROLLRATE_MAX / MC_PITCHRATE_MAX 220 deg/s; the
+  # autopilot never commands more, and the fitted polynomial (|w| w terms) runs away to inf outside that envelope.
+  paper_rate_limit: float = 3.84
 
   def __post_init__(self):
     if self.mode not in RECON_MODES:
@@ -580,13 +588,65 @@ def _paper_variances(cfg: ReconConfig, params: dyn.DynParams, tau, p0, dt):
   return jnp.concatenate([pos, vel, p0[6:9] + att])
 
 
+def _paper_rate(cfg: ReconConfig, rate):
+  """The paper mode's model body rate: `_model_rate`, clamped to paper_rate_limit (rad/s)."""
+  return jnp.clip(_model_rate(cfg, rate), -cfg.paper_rate_limit, cfg.paper_rate_limit)
+
+
+def _paper_force(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, f_bias):
+  """[3] the paper mode's model body specific force (m/s^2) at state s under controls u: the fitted one (a ground
+  vehicle's: `_model_force`) plus the vehicle's identified offset f_bias [3]."""
+  return _model_force(cfg, dyn.specific_force(params, s, u), s, u) + f_bias
+
+
+def _paper_step(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, dt, f_bias) -> dyn.DynState:
+  s = dyn.step(params, s, u, dt, specific_force=_paper_force(cfg, params, s, u, f_bias))
+  return s.replace(rate=_paper_rate(cfg, s.rate))
+
+
+def _paper_force_bias(cfg: ReconConfig, params: dyn.DynParams, ring: ck.CheckpointState, start):
+  """[3] mean body-frame specific force measured minus the model's over the trusted ring entries up to the checkpoint
+  (ordered index `start`; zeros without paper_calibrate or data). Entry j's world acceleration was produced by the
+  controls stored with it at the state of entry j - 1 (as the fit pairs them, dynamics._fit)."""
+  if not cfg.paper_calibrate:
+    return jnp.zeros(3)
+  states, controls, valid = ck.ckpt_ordered(ring)
+  e = _unpack(states)
+  prev = dyn.DynState(pos=e["pos"][:-1], vel=e["vel"][:-1], quat=e["quat"][:-1], rate=e["rate"][:-1])
+  f_mod = jax.vmap(lambda st, u: _paper_force(cfg, params, st, u, jnp.zeros(3)))(prev, controls[1:])
+  r = jax.vmap(math3d.quat_to_rot)(e["quat"][1:])
+  f_meas = jnp.einsum("nji,nj->ni", r, e["acc"][1:] - dyn.G)
+  j = jnp.arange(1, states.shape[0])
+  w = (valid[1:] & valid[:-1] & (j <= start)).astype(jnp.float32)
+  return jnp.sum(w[:, None] * (f_meas - f_mod), 0) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _paper_start(cfg: ReconConfig, params: dyn.DynParams, start, entry, controls, dt, f_bias) -> dyn.DynState:
+  """The model state at the PREVIOUS tick: the checkpoint entry at ordered index `start` rolled forward over the
+  controls stored after it ([lag, n_u]; see `_ring_reads`), as `_start` for the fused mode."""
+  w = cfg.window
+  e = _unpack(entry)
+  s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=_paper_rate(cfg, e["rate"]))
+
+  def body(i, s):
+    s_new = _paper_step(cfg, params, s, controls[i], dt, f_bias)
+    return jax.tree.map(lambda a, b: jnp.where(start + 1 + i <= w - 1, a, b), s_new, s)
+
+  lag = controls.shape[0]
+  return jax.lax.fori_loop(0, lag, body, s0, unroll=max(lag, 1) if jax.default_backend() != "cpu" else 1)
+
+
 def _paper_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls, mask,
                 alarm, dt, x_meas, rising, falling, start, entry, replay_controls, ring):
   """recon_tick of the paper mode (module docstring); the same inputs and outputs.
 
   The model state (ReconState.model) is this tick's: on the rising tick the checkpoint rolled forward to the previous
-  tick (`_start`, as the fused mode's), then one model step over `controls` (which moved the vehicle from the
-  previous tick to this one); each later tick of the alarm one more step. x'_t's model components: pos, vel, the
+  tick (`_paper_start`, as `_start` for the fused mode), then one model step over `controls` (which moved the vehicle
+  from the previous tick to this one); each later tick of the alarm one more step. The model is the fitted one with
+  the vehicle's specific-force offset identified before the checkpoint (`_paper_force_bias`) and the rate clamp
+  paper_rate_limit. Selective (DeLorean): each step's uncompromised components are the autopilot EKF's, so e.g.
+  under a GPS attack position and velocity are integrated open loop from the model's thrust along the EKF's attitude;
+  the compromised ones get no correction from any sensor until the hand-back. x'_t's model components: pos, vel, the
   world acceleration R f + g of the model's specific force f at this state and controls, Euler angles, body rate.
   The trusted estimate (what the autopilot flies on) is the autopilot EKF's with the compromised components replaced
   by the model's (Euler angles recomposed into the quaternion), the replaced sensors' bias states at the checkpoint's
@@ -598,27 +658,26 @@ def _paper_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_
   through the ordinary gates); the readings are the sensors' again."""
   gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
   on = alarm | falling
+  f_bias = _paper_force_bias(cfg, params, ring, start)
   with jax.named_scope("recon_replay"):
-    shadow0, rate0 = _start(cfg, params, start, entry, replay_controls, ekf_state, dt)
-  s0 = dyn.DynState(pos=shadow0.pos, vel=shadow0.vel, quat=shadow0.quat, rate=rate0)
+    s0 = _paper_start(cfg, params, start, entry, replay_controls, dt, f_bias)
   s_prev = jax.tree.map(lambda a, b: jnp.where(rising, a, b), s0, state.model)
-
-  def force(s):
-    return _model_force(cfg, dyn.specific_force(params, s, controls), s, controls)
-
-  s = dyn.step(params, s_prev, controls, dt, specific_force=force(s_prev) if cfg.ground_vehicle else None)
-  s = s.replace(rate=_model_rate(cfg, s.rate))
-  f_b = force(s)
-  x_model = jnp.concatenate([s.pos, s.vel, math3d.matvec(math3d.quat_to_rot(s.quat), f_b) + dyn.G,
-                             math3d.quat_to_euler(s.quat), s.rate])
+  s = _paper_step(cfg, params, s_prev, controls, dt, f_bias)    # the model's prediction of this tick
   use_mask = jnp.where(alarm, mask, state.blamed > 0)          # hand-back: the last alarm tick's diagnosis
   dep = dependent_components(use_mask) & on
+  # Selective: the uncompromised components are the EKF's, also as the model's starting point for the next tick.
+  ea = dep[EULER]
+  quat = jnp.where(jnp.all(ea), s.quat, jnp.where(
+      jnp.any(ea), math3d.euler_to_quat(jnp.where(ea, math3d.quat_to_euler(s.quat), x_meas[EULER])), ekf_state.quat))
+  s = dyn.DynState(pos=jnp.where(dep[POS], s.pos, ekf_state.pos), vel=jnp.where(dep[VEL], s.vel, ekf_state.vel),
+                   quat=quat, rate=jnp.where(dep[RATE], s.rate, x_meas[RATE]))
+  f_b = _paper_force(cfg, params, s, controls, f_bias)
+  x_model = jnp.concatenate([s.pos, s.vel, math3d.matvec(math3d.quat_to_rot(s.quat), f_b) + dyn.G,
+                             math3d.quat_to_euler(s.quat), s.rate])
   x_rec = jnp.where(dep, x_model, x_meas)
 
   # trusted estimate: the EKF's with the replaced components
   e_ck = _unpack(entry)
-  ea = dep[EULER]
-  quat = jnp.where(jnp.all(ea), s.quat, jnp.where(jnp.any(ea), math3d.euler_to_quat(x_rec[EULER]), ekf_state.quat))
   gyro_bias = jnp.where(use_mask[gi], e_ck["gyro_bias"], ekf_state.gyro_bias)
   accel_bias = jnp.where(use_mask[ai], e_ck["accel_bias"], ekf_state.accel_bias)
   age = _ckpt_age(cfg, state, start, alarm, rising, dt)
