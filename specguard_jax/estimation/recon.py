@@ -154,6 +154,9 @@ class ReconConfig:
   # Body-rate clamp of the paper mode's model (rad/s): PX4's MC_ROLLRATE_MAX / MC_PITCHRATE_MAX 220 deg/s; the
   # autopilot never commands more, and the fitted polynomial (|w| w terms) runs away to inf outside that envelope.
   paper_rate_limit: float = 3.84
+  # ... and speed clamp (m/s): above the envelope (PX4 MPC_XY_VEL_MAX 12 m/s horizontally, MPC_Z_VEL_MAX_UP 3 m/s);
+  # the fitted |v| v and u |v| terms feed back positively outside the training data (the rover's did, `_model_force`).
+  paper_speed_limit: float = 20.0
 
   def __post_init__(self):
     if self.mode not in RECON_MODES:
@@ -601,7 +604,8 @@ def _paper_force(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, f_
 
 def _paper_step(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, dt, f_bias) -> dyn.DynState:
   s = dyn.step(params, s, u, dt, specific_force=_paper_force(cfg, params, s, u, f_bias))
-  return s.replace(rate=_paper_rate(cfg, s.rate))
+  vel = s.vel * jnp.minimum(1.0, cfg.paper_speed_limit / jnp.maximum(math3d.norm(s.vel), 1e-6))
+  return s.replace(vel=vel, rate=_paper_rate(cfg, s.rate))
 
 
 def _paper_force_bias(cfg: ReconConfig, params: dyn.DynParams, ring: ck.CheckpointState, start):
@@ -643,8 +647,8 @@ def _paper_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_
   The model state (ReconState.model) is this tick's: on the rising tick the checkpoint rolled forward to the previous
   tick (`_paper_start`, as `_start` for the fused mode), then one model step over `controls` (which moved the vehicle
   from the previous tick to this one); each later tick of the alarm one more step. The model is the fitted one with
-  the vehicle's specific-force offset identified before the checkpoint (`_paper_force_bias`) and the rate clamp
-  paper_rate_limit. Selective (DeLorean): each step's uncompromised components are the autopilot EKF's, so e.g.
+  the vehicle's specific-force offset identified before the checkpoint (`_paper_force_bias`) and the clamps
+  paper_rate_limit / paper_speed_limit. Selective (DeLorean): each step's uncompromised components are the autopilot EKF's, so e.g.
   under a GPS attack position and velocity are integrated open loop from the model's thrust along the EKF's attitude;
   the compromised ones get no correction from any sensor until the hand-back. x'_t's model components: pos, vel, the
   world acceleration R f + g of the model's specific force f at this state and controls, Euler angles, body rate.
