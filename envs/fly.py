@@ -16,6 +16,7 @@ import dataclasses
 import json
 import sys
 import time
+import warnings
 
 import envs
 from envs import mission_files
@@ -72,7 +73,7 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
   world_id = worlds_lib.PRESET_NAMES.index(world)
   loaded = None
   if mission_file is not None:
-    loaded = mission_files.load_mission(mission_file, vehicle)
+    loaded = mission_files.load_mission(mission_file, vehicle, max_episode_s=env.config.max_episode_s)
   if batch <= 0:
     batch = missions if jax.default_backend() != "cpu" else min(missions, 64)
   max_steps = int(env.config.max_episode_s / env.dt) + 1
@@ -134,10 +135,14 @@ def main(argv=None):
   names = list(worlds_lib.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
-    env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type)
-    for i, name in enumerate(names):
-      results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
-                         args.plot if i == 0 else None, env=env))
+    with warnings.catch_warnings():   # a mission file's warning: one line on stderr
+      warnings.showwarning = lambda message, *_, **__: print(f"warning: {message}", file=sys.stderr)
+      if args.mission is not None:   # a bad file fails before the env is built
+        mission_files.load_mission(args.mission, args.vehicle)
+      env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type)
+      for i, name in enumerate(names):
+        results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
+                           args.plot if i == 0 else None, env=env))
   except ValueError as e:  # bad mission file, attack or config: one line, no traceback
     print(f"error: {e}", file=sys.stderr)
     return 2

@@ -17,7 +17,18 @@ cruiseSpeed / hoverSpeed are QGC defaults more often than intent and are ignored
 `missions.mission_timing` exactly like generated missions. ComplexItems (survey, corridor/structure scan), geofence
 and rally points in .plan files are not supported (ComplexItems are rejected).
 
+Checks (every value must also be finite; JSON's NaN / Infinity and booleans are refused where numbers belong):
+  * latitudes in [-90, 90], longitudes in [-180, 180], the home altitude in [MIN_HOME_AMSL_M, MAX_HOME_AMSL_M];
+  * every position within MAX_HOME_DISTANCE_M (10 km) of home: the equirectangular projection's error grows as
+    d^2 / R (about 10 m at 10 km east-west at mid latitudes), and no episode flies that far anyway;
+  * drone waypoints above the ground (height above home > 0) and at most MAX_ALTITUDE_M above home, take-off likewise;
+  * DO_CHANGE_SPEED in (0, MAX_SPEED_M_S], loiter times in (0, MAX_LOITER_S], loiter radii at most MAX_LOITER_RADIUS_M;
+  * a mission whose nominal duration exceeds the episode cap (`max_episode_s`, EnvConfig's default unless given)
+    cannot finish inside an episode: a MissionFileWarning, or a MissionFileError with strict=True.
+
 Errors: `MissionFileError` (a ValueError) with one line "<file>: line <n>: <problem>" / "<file>: item <k>: ...".
+Files are read as UTF-8 (a byte-order mark is dropped); the format is JSON (.plan) when the extension is .plan or the
+text starts with '{' or '[', else QGC WPL.
 """
 
 from __future__ import annotations
@@ -26,10 +37,12 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
 
+from envs.base import EnvConfig
 from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, mission_timing
 from specguard_jax.types import VEHICLES
 
@@ -46,10 +59,32 @@ _NAV_COMMANDS = (16, 17, 19, 20, 21, 22)
 _GLOBAL_FRAMES = (0, 5)    # MAV_FRAME_GLOBAL(_INT): altitude AMSL
 _RELATIVE_FRAMES = (3, 6)  # MAV_FRAME_GLOBAL_RELATIVE_ALT(_INT): altitude above home
 _MISSION_FRAME = 2         # MAV_FRAME_MISSION: DO_ commands without coordinates
+_PLAN_PARAMS = ("", "", "", "", "latitude", "longitude", "altitude")  # what a .plan item's params[j] holds
+
+MAX_HOME_DISTANCE_M = 10_000.0  # farthest position from home (m), see the module docstring
+MAX_ALTITUDE_M = 1_000.0        # highest waypoint / take-off above home (m)
+MIN_HOME_AMSL_M, MAX_HOME_AMSL_M = -500.0, 9_000.0  # home altitude above mean sea level (m)
+MAX_SPEED_M_S = 30.0            # fastest DO_CHANGE_SPEED (m/s), above both vehicles' speed specs
+MAX_LOITER_S = 3_600.0          # longest NAV_LOITER_TIME (s)
+MAX_LOITER_RADIUS_M = 1_000.0   # widest loiter radius (m)
 
 
 class MissionFileError(ValueError):
   """A mission file that cannot be loaded; the message names the file, the line/item and the problem."""
+
+
+class MissionFileWarning(UserWarning):
+  """A mission file that loads but is unlikely to do what was meant (it cannot finish within the episode cap)."""
+
+
+class _JSONConstant:
+  """A JSON NaN / Infinity / -Infinity token (not standard JSON), kept so that the field it sits in can be named."""
+
+  def __init__(self, token: str):
+    self.token = token
+
+  def __repr__(self) -> str:
+    return self.token
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,6 +147,8 @@ def parse_wpl(text: str, name: str = "<string>"):
         _fail(name, f"line {lineno}", f"column {col!r} is not a number: {raw.strip()[:20]!r}")
       if not math.isfinite(v):
         _fail(name, f"line {lineno}", f"column {col!r} is not finite: {raw.strip()!r}")
+      if col in ("seq", "current", "frame", "command", "autocontinue") and not v.is_integer():
+        _fail(name, f"line {lineno}", f"column {col!r} must be an integer, got {raw.strip()[:20]!r}")
       vals.append(v)
     seq = int(vals[0])
     if seq != len(rows):
@@ -129,17 +166,26 @@ def parse_wpl(text: str, name: str = "<string>"):
 def parse_plan(text: str, name: str = "<string>"):
   """Parse QGC `.plan` JSON. Returns (home (lat, lon, alt_amsl), [MissionItem]); items numbered from 1."""
   try:
-    doc = json.loads(text)
+    doc = json.loads(text, parse_constant=_JSONConstant)
   except json.JSONDecodeError as e:
     _fail(name, f"line {e.lineno}", f"not valid JSON ({e.msg})")
-  if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
+  except RecursionError:
+    _fail(name, "", "JSON nested too deeply to read (a .plan nests a few levels)")
+  except ValueError as e:  # e.g. an integer of more than 4300 digits
+    _fail(name, "", f"unreadable JSON ({str(e)[:80]})")
+  if not isinstance(doc, dict):
+    _fail(name, "", f"not a .plan object: the top level is a JSON {_json_type(doc)} (a QGroundControl .plan is an "
+          "object with \"fileType\": \"Plan\")")
+  if doc.get("fileType") != "Plan":
     _fail(name, "", "not a QGroundControl plan (fileType != 'Plan')")
   mission = doc.get("mission")
   if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
     _fail(name, "", "missing 'mission.items' list")
   home = mission.get("plannedHomePosition")
-  if not isinstance(home, list) or len(home) != 3 or not all(isinstance(v, (int, float)) for v in home):
+  if not isinstance(home, list) or len(home) != 3:
     _fail(name, "", "missing or malformed 'mission.plannedHomePosition' [lat, lon, alt]")
+  home = [_number(v, name, "", f"plannedHomePosition[{j}]", what)
+          for j, (v, what) in enumerate(zip(home, ("latitude", "longitude", "altitude")))]
   if home[0] == 0 and home[1] == 0:
     _fail(name, "", "plannedHomePosition has lat = lon = 0")
   items = []
@@ -153,29 +199,57 @@ def parse_plan(text: str, name: str = "<string>"):
     if typ != "SimpleItem":
       _fail(name, where, f"unknown item type {typ!r}")
     cmd, frame, params = it.get("command"), it.get("frame", 3), it.get("params")
-    if not isinstance(cmd, int) or not isinstance(frame, int):
-      _fail(name, where, "'command' and 'frame' must be integers")
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (cmd, frame)):
+      _fail(name, where, f"'command' and 'frame' must be integers, got {str(cmd)[:20]} and {str(frame)[:20]}")
     if not isinstance(params, list) or len(params) != 7:
       _fail(name, where, "'params' must be a list of 7 values")
     vals = []
     for j, v in enumerate(params):
       if v is None:  # QGC writes NaN as null
-        v = math.nan if j >= 4 else 0.0
-      if not isinstance(v, (int, float)) or isinstance(v, bool):
-        _fail(name, where, f"param {j + 1} is not a number: {v!r}")
-      vals.append(float(v))
+        vals.append(math.nan if j >= 4 else 0.0)
+      else:
+        vals.append(_number(v, name, where, f"param {j + 1}", _PLAN_PARAMS[j]))
     items.append(MissionItem(where, cmd, frame, tuple(vals[:4]), vals[4], vals[5], vals[6]))
   return tuple(float(v) for v in home), items
+
+
+def _json_type(v) -> str:
+  return {dict: "object", list: "list", str: "string", bool: "boolean", type(None): "null"}.get(type(v), "number")
+
+
+def _number(v, name: str, where: str, field: str, meaning: str) -> float:
+  """A JSON value that must be a finite number, as a float; MissionFileError naming `field` (`meaning`) otherwise."""
+  note = f" ({meaning})" if meaning else ""
+  if isinstance(v, _JSONConstant):
+    _fail(name, where, f"{field}{note} is {v.token}: JSON NaN / Infinity are not allowed (QGC writes null for an "
+          "unset value)")
+  if isinstance(v, bool) or not isinstance(v, (int, float)):
+    _fail(name, where, f"{field} is not a number{note}: {_json_type(v)} {str(v)[:20]}")
+  try:
+    x = float(v)
+  except OverflowError:
+    x = math.inf
+  if not math.isfinite(x):
+    _fail(name, where, f"{field}{note} is not finite: {str(v)[:24]}")
+  return x
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # Items -> Mission
 
 
-def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = "<string>") -> Mission:
-  """Interpret parsed items (see module docstring) as a Mission for `vehicle` ("drone" | "rover")."""
+def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = "<string>",
+                     max_episode_s: float | None = None, strict: bool = False) -> Mission:
+  """Interpret parsed items (see module docstring) as a Mission for `vehicle` ("drone" | "rover").
+
+  max_episode_s: the episode cap the mission must fit in (s; EnvConfig's default if None); a longer nominal duration
+  warns (MissionFileWarning) or, with strict=True, raises MissionFileError."""
   rover = vehicle == "rover"
   home_lat, home_lon, home_alt = home
+  if not (-90 <= home_lat <= 90 and -180 <= home_lon <= 180):
+    _fail(name, "", f"home position lat {home_lat}, lon {home_lon} is outside [-90, 90] x [-180, 180] degrees")
+  if not MIN_HOME_AMSL_M <= home_alt <= MAX_HOME_AMSL_M:
+    _fail(name, "", f"home altitude {home_alt} m AMSL is outside [{MIN_HOME_AMSL_M:g}, {MAX_HOME_AMSL_M:g}] m")
   wps = []          # [x, y, z] relative to home
   takeoff_alt = None
   loiter_wp, loiter_time, loiter_radius = -1, 0.0, cfg.loiter_radius
@@ -192,12 +266,32 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
       return it.alt
     _fail(name, it.where, f"unsupported frame {it.frame} (use 0/5 global or 3/6 relative altitude)")
 
-  def position(it):
+  def height(it):
+    """Height above home of a drone item, checked to be above the ground and below MAX_ALTITUDE_M."""
+    z = float(altitude(it))
+    frame = f" (frame {it.frame}: {it.alt:g} m AMSL, home at {home_alt:g} m)" if it.frame in _GLOBAL_FRAMES else ""
+    if not z > 0:
+      _fail(name, it.where, f"{COMMAND_NAMES[it.command]} altitude {z:.2f} m above home{frame} is not above the "
+            "ground (must be > 0)")
+    if z > MAX_ALTITUDE_M:
+      _fail(name, it.where, f"{COMMAND_NAMES[it.command]} altitude {z:.2f} m above home{frame} is above "
+            f"{MAX_ALTITUDE_M:g} m")
+    return z
+
+  def position(it, with_altitude=True):
+    cname = COMMAND_NAMES[it.command]
     if not (math.isfinite(it.lat) and math.isfinite(it.lon)):
-      _fail(name, it.where, f"{COMMAND_NAMES[it.command]} without coordinates")
-    z = altitude(it)
-    x, y = latlon_to_enu(it.lat, it.lon, home_lat, home_lon)
-    return [float(x), float(y), 0.0 if rover else float(z)]
+      _fail(name, it.where, f"{cname} without coordinates")
+    if not (-90 <= it.lat <= 90 and -180 <= it.lon <= 180):
+      _fail(name, it.where, f"{cname} lat {it.lat}, lon {it.lon} is outside [-90, 90] x [-180, 180] degrees")
+    x, y = (float(v) for v in latlon_to_enu(it.lat, it.lon, home_lat, home_lon))
+    if math.hypot(x, y) > MAX_HOME_DISTANCE_M:
+      _fail(name, it.where, f"{cname} at lat {it.lat}, lon {it.lon} is {math.hypot(x, y) / 1000:.1f} km from home "
+            f"(at most {MAX_HOME_DISTANCE_M / 1000:g} km)")
+    if rover:
+      altitude(it)
+      return [x, y, 0.0]
+    return [x, y, height(it) if with_altitude else 0.0]
 
   def has_latlon(it):
     return math.isfinite(it.lat) and math.isfinite(it.lon) and not (it.lat == 0.0 and it.lon == 0.0)
@@ -215,8 +309,8 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
     if rover and cmd in (CMD_TAKEOFF, CMD_LAND, CMD_LOITER_TIME, CMD_LOITER_UNLIM):
       _fail(name, it.where, f"{cname} is not supported for rovers")
     if cmd == CMD_CHANGE_SPEED:
-      if not it.params[1] > 0:
-        _fail(name, it.where, f"DO_CHANGE_SPEED speed must be > 0, got {it.params[1]}")
+      if not 0 < it.params[1] <= MAX_SPEED_M_S:
+        _fail(name, it.where, f"DO_CHANGE_SPEED speed must be > 0 and <= {MAX_SPEED_M_S:g} m/s, got {it.params[1]}")
       speeds.add(round(it.params[1], 6))
       if len(speeds) > 1:
         _fail(name, it.where, "only one DO_CHANGE_SPEED speed per mission is supported")
@@ -224,9 +318,7 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
     if cmd == CMD_TAKEOFF:
       if wps or takeoff_alt is not None:
         _fail(name, it.where, "NAV_TAKEOFF must come before any waypoint (and only once)")
-      takeoff_alt = float(altitude(it))
-      if not takeoff_alt > 0:
-        _fail(name, it.where, f"take-off altitude must be > 0 m above home, got {takeoff_alt:.2f}")
+      takeoff_alt = height(it)
       continue
     if cmd == CMD_WAYPOINT:
       if not has_latlon(it):
@@ -241,17 +333,20 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
         _fail(name, it.where, f"{cname} in place before any waypoint")
       loiter_wp = len(wps) - 1
       if cmd == CMD_LOITER_TIME:
-        if not it.params[0] > 0:
-          _fail(name, it.where, f"NAV_LOITER_TIME time (param1) must be > 0 s, got {it.params[0]}")
+        if not 0 < it.params[0] <= MAX_LOITER_S:
+          _fail(name, it.where, f"NAV_LOITER_TIME time (param1) must be > 0 s and <= {MAX_LOITER_S:g} s, "
+                f"got {it.params[0]}")
         loiter_time = it.params[0]
       else:
         loiter_time = float(cfg.loiter_time[1])
         ended_by = cname
+      if abs(it.params[2]) > MAX_LOITER_RADIUS_M:
+        _fail(name, it.where, f"{cname} radius (param3) {it.params[2]} m is wider than {MAX_LOITER_RADIUS_M:g} m")
       if it.params[2] != 0:
         loiter_radius = abs(it.params[2])
     elif cmd == CMD_LAND:
       if has_latlon(it):
-        p = position(it)
+        p = position(it, with_altitude=False)
         p[2] = current_alt()
         if not wps or math.dist(p[:2], wps[-1][:2]) > cfg.acceptance_radius:
           wps.append(p)
@@ -279,6 +374,13 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
   home_v, wp_v, n_v = f32(np.zeros(3)), f32(arr), jnp.int32(n)
   lw, lt, ld, to = jnp.int32(loiter_wp), f32(loiter_time), f32(land), f32(takeoff_alt)
   window_open, deadline, duration = mission_timing(home_v, wp_v, n_v, to, f32(cruise), lw, lt, ld, cfg)
+  cap = EnvConfig.max_episode_s if max_episode_s is None else float(max_episode_s)
+  if not float(duration) <= cap:
+    problem = (f"the mission's nominal duration {float(duration):.0f} s exceeds the episode cap of {cap:g} s "
+               "(EnvConfig.max_episode_s): it cannot finish within an episode")
+    if strict:
+      _fail(name, "", problem)
+    warnings.warn(f"{name}: {problem}", MissionFileWarning, stacklevel=3)
   return Mission(home=home_v, waypoints=wp_v, n_waypoints=n_v, window_open=f32(window_open),
                  deadline=f32(deadline), takeoff_alt=to, cruise_speed=f32(cruise),
                  acceptance_radius=f32(cfg.acceptance_radius), loiter_wp=lw, loiter_time=lt,
@@ -295,8 +397,9 @@ def _config(vehicle, cfg):
 
 
 def loads_mission(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None = None,
-                  name: str = "<string>") -> Mission:
-  """Load a mission from file contents; fmt: "wpl" (QGC WPL 110) or "plan" (.plan JSON)."""
+                  name: str = "<string>", max_episode_s: float | None = None, strict: bool = False) -> Mission:
+  """Load a mission from file contents; fmt: "wpl" (QGC WPL 110) or "plan" (.plan JSON). max_episode_s, strict: see
+  `items_to_mission`."""
   cfg = _config(vehicle, cfg)
   if fmt == "wpl":
     home, items = parse_wpl(text, name)
@@ -304,24 +407,27 @@ def loads_mission(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None =
     home, items = parse_plan(text, name)
   else:
     raise ValueError(f"fmt must be 'wpl' or 'plan', got {fmt!r}")
-  return items_to_mission(home, items, vehicle, cfg, name)
+  return items_to_mission(home, items, vehicle, cfg, name, max_episode_s, strict)
 
 
-def load_mission(path, vehicle: str, cfg: MissionConfig | None = None) -> Mission:
+def load_mission(path, vehicle: str, cfg: MissionConfig | None = None, max_episode_s: float | None = None,
+                 strict: bool = False) -> Mission:
   """Load a `.plan` (JSON) or QGC WPL 110 (`.waypoints` / `.txt` / `.mission`) file as a Mission (home at origin).
 
   vehicle: "drone" | "rover"; cfg: timing/acceptance defaults (MissionConfig.drone()/rover() if None).
-  The format is chosen by content (JSON object -> plan, else WPL). Raises MissionFileError on bad files.
+  max_episode_s: the episode cap the mission must fit in (s; EnvConfig's default if None); strict: a mission that
+  cannot finish within it raises instead of warning. The format is JSON for a .plan file or text starting with '{' or
+  '[' (a JSON plan), else WPL. Raises MissionFileError on bad files (see the module docstring for the checks).
   """
   path = os.fspath(path)
   name = os.path.basename(path)
   try:
-    with open(path, encoding="utf-8") as f:
+    with open(path, encoding="utf-8-sig") as f:
       text = f.read()
   except (OSError, UnicodeDecodeError) as e:
     raise MissionFileError(f"{name}: cannot read: {e}") from None
-  fmt = "plan" if text.lstrip().startswith("{") else "wpl"
-  return loads_mission(text, fmt, vehicle, cfg, name)
+  is_json = os.path.splitext(path)[1].lower() == ".plan" or text.lstrip()[:1] in ("{", "[")
+  return loads_mission(text, "plan" if is_json else "wpl", vehicle, cfg, name, max_episode_s, strict)
 
 
 # ----------------------------------------------------------------------------------------------------------------

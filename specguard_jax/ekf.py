@@ -46,8 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from specguard_jax.math3d import (dot, euler_to_quat, matvec, matvec_t, norm, quat_mul, quat_to_euler, quat_to_rot,
-                                  with_component, wrap_angle)
+from specguard_jax.math3d import (euler_to_quat, matvec, matvec_t, normalize_quat, quat_mul, quat_to_euler, quat_to_rot,
+                                  rotvec_to_quat, with_component, wrap_angle)
 from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
 from specguard_jax.types import SensorReadings
 
@@ -166,28 +166,12 @@ def _skew(v):
   return jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _rotvec_to_quat(v):
-  """[3] rotation vector (rad) -> [4] unit quaternion; smooth at 0."""
-  a2 = dot(v, v)
-  small = a2 < 1e-8
-  a = jnp.sqrt(jnp.where(small, 1.0, a2))
-  s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
-  c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
-  return jnp.concatenate([c[None], s * v])
-
-
-def _normalize_quat(q):
-  n = norm(q)
-  ok = jnp.isfinite(n) & (n > 1e-6)
-  return jnp.where(ok, q / jnp.where(ok, n, 1.0), jnp.array([1.0, 0.0, 0.0, 0.0]))
-
-
 # ----------------------------------------------------------------------------------------------------------------------
 # covariance hygiene
 
-_VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
+VAR_MIN = np.array([1e-6] * 3 + [1e-6] * 3 + [1e-9] * 3 + [1e-12] * 3 + [1e-10] * 3, np.float32)
 _EYE = np.eye(N_ERR, dtype=np.float32)
-_VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
+VAR_MAX = np.array([1e6] * 3 + [1e4] * 3 + [1.0] * 3 + [0.1] * 3 + [1.0] * 3, np.float32)
 TRI = tuple((i, j) for i in range(N_ERR) for j in range(i, N_ERR))       # P's upper triangle, 120 entries
 TRI_INDEX = {ij: k for k, ij in enumerate(TRI)}
 
@@ -257,7 +241,7 @@ def _diag(P):
   return P.reshape(-1)[::P.shape[-1] + 1]
 
 
-def _condition(P, symmetrise: bool = True, diag=None):
+def condition(P, symmetrise: bool = True, diag=None):
   """Symmetrise (optional), replace non-finite entries, clamp the diagonal while keeping P PSD.
 
   One elementwise pass over P (the diagonal is read once; the scaled diagonal is d s^2, computed from it), so XLA
@@ -270,9 +254,9 @@ def _condition(P, symmetrise: bool = True, diag=None):
   P = jnp.where(jnp.isfinite(P), P, 0.0)
   d = _diag(P) if diag is None else diag
   # upper clamp: scale row/column i by sqrt(max/var) (a congruence, so PSD is kept)
-  s = jnp.sqrt(jnp.minimum(1.0, _VAR_MAX / jnp.maximum(d, 1e-30)))
+  s = jnp.sqrt(jnp.minimum(1.0, VAR_MAX / jnp.maximum(d, 1e-30)))
   # lower clamp: adding a nonnegative diagonal keeps PSD
-  lift = jnp.maximum(_VAR_MIN - d * (s * s), 0.0)
+  lift = jnp.maximum(VAR_MIN - d * (s * s), 0.0)
   return P * (s[:, None] * s[None, :]) + _EYE * lift[None, :]
 
 
@@ -290,7 +274,7 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings, p_layout: str = "square")
   f = readings.accel
   roll = jnp.arctan2(f[1], f[2])
   pitch = jnp.arctan2(-f[0], jnp.sqrt(f[1] ** 2 + f[2] ** 2))
-  quat = _normalize_quat(euler_to_quat(jnp.stack([roll, pitch, readings.mag_yaw])))
+  quat = normalize_quat(euler_to_quat(jnp.stack([roll, pitch, readings.mag_yaw])))
   pos = jnp.stack([readings.gps_pos[0], readings.gps_pos[1], readings.baro_alt])
   sig = jnp.array([cfg.init_pos_sigma_h] * 2 + [cfg.init_pos_sigma_v] + [cfg.init_vel_sigma] * 3
                   + [cfg.init_tilt_sigma] * 2 + [cfg.init_yaw_sigma] + [cfg.init_gyro_bias_sigma] * 3
@@ -303,15 +287,15 @@ def ekf_init(cfg: EKFConfig, readings: SensorReadings, p_layout: str = "square")
                   reset=z, n_resets=z, time=z)
 
 
-def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
+def predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
   """Strapdown propagation of the nominal state over dt. Returns (state with the predicted pos/vel/quat and the old P,
   A [3, 3], B [3, 3]): the non-identity blocks of the error-state transition F = I + E, whose only blocks are
   d(pos)/d(vel) = I dt, d(vel)/d(att) = A = -[R a]x dt, d(vel)/d(accel bias) = d(att)/d(gyro bias) = B = -R dt."""
   w = jnp.clip(gyro, -GYRO_RANGE, GYRO_RANGE) - s.gyro_bias
   a = jnp.clip(accel, -ACCEL_RANGE, ACCEL_RANGE) - s.accel_bias
   # the IMU sample stands for the interval ending now: rotate the specific force with the mid-interval attitude
-  quat = _normalize_quat(quat_mul(s.quat, _rotvec_to_quat(w * dt)))
-  r = quat_to_rot(quat_mul(s.quat, _rotvec_to_quat(0.5 * w * dt)))
+  quat = normalize_quat(quat_mul(s.quat, rotvec_to_quat(w * dt)))
+  r = quat_to_rot(quat_mul(s.quat, rotvec_to_quat(0.5 * w * dt)))
   ra = matvec(r, a)
   acc_w = ra + jnp.array([0.0, 0.0, -GRAVITY])
   pos = s.pos + s.vel * dt + 0.5 * acc_w * dt * dt
@@ -319,14 +303,14 @@ def _predict_nominal(cfg: EKFConfig, s: EKFState, gyro, accel, dt):
   return s.replace(pos=pos, vel=vel, quat=quat), -_skew(ra) * dt, -r * dt
 
 
-def _process_noise(cfg: EKFConfig, dt, xp=jnp):
+def process_noise(cfg: EKFConfig, dt, xp=jnp):
   """[15] process-noise variances added to P's diagonal over one tick of dt (s); xp=np for a static table."""
   sigma = (0.0, cfg.accel_noise, cfg.gyro_noise, cfg.gyro_bias_noise, cfg.accel_bias_noise)
   return xp.concatenate([xp.full(3, (x * dt) ** 2, xp.float32) for x in sigma])
 
 
-def _predict_cov(cfg: EKFConfig, P, A, B, dt):
-  """P <- F P F' + Q (F = I + E, see `_predict_nominal`), then the tick's one symmetrisation and clamps.
+def predict_cov(cfg: EKFConfig, P, A, B, dt):
+  """P <- F P F' + Q (F = I + E, see `predict_nominal`), then the tick's one symmetrisation and clamps.
 
   Written as row/column combinations of P (elementwise for XLA) instead of two dense batched 15x15 matmuls."""
 
@@ -340,22 +324,22 @@ def _predict_cov(cfg: EKFConfig, P, A, B, dt):
 
   P = FP + jnp.concatenate([dt * FP[:, VEL], cols(FP, A, 6) + cols(FP, B, 12), cols(FP, B, 9),
                             jnp.zeros((N_ERR, 6))], axis=1)
-  P = P + _EYE * _process_noise(cfg, dt)[None, :]
+  P = P + _EYE * process_noise(cfg, dt)[None, :]
   # The tick's one symmetrisation (a transpose): every later update of P this tick is exactly symmetric.
-  return _condition(P)
+  return condition(P)
 
 
 def _predict(cfg: EKFConfig, s: EKFState, gyro, accel, dt) -> EKFState:
   """Strapdown propagation of the nominal state and P over dt."""
-  s, A, B = _predict_nominal(cfg, s, gyro, accel, dt)
-  return s.replace(P=layout_like(_predict_cov(cfg, as_square(s.P), A, B, dt), s.P))
+  s, A, B = predict_nominal(cfg, s, gyro, accel, dt)
+  return s.replace(P=layout_like(predict_cov(cfg, as_square(s.P), A, B, dt), s.P))
 
 
 def _inject(cfg: EKFConfig, s: EKFState, dx) -> EKFState:
   """Adds an error-state correction dx[15] to the nominal state."""
-  dq = _rotvec_to_quat(dx[ATT])
+  dq = rotvec_to_quat(dx[ATT])
   return s.replace(
-    pos=s.pos + dx[POS], vel=s.vel + dx[VEL], quat=_normalize_quat(quat_mul(dq, s.quat)),
+    pos=s.pos + dx[POS], vel=s.vel + dx[VEL], quat=normalize_quat(quat_mul(dq, s.quat)),
     gyro_bias=jnp.clip(s.gyro_bias + dx[GBIAS], -cfg.gyro_bias_limit, cfg.gyro_bias_limit),
     accel_bias=jnp.clip(s.accel_bias + dx[ABIAS], -cfg.accel_bias_limit, cfg.accel_bias_limit))
 
@@ -365,15 +349,15 @@ _ROWS = CHANNELS + ("nhc_y", "nhc_z")
 N_ROWS = len(_ROWS)
 # gate groups (EKF2 accepts/rejects these vector observations as a whole): GPS horizontal position, GPS height,
 # GPS velocity, baro, mag, flow, odometry, non-holonomic constraint
-_GROUP_OF_ROW = (0, 0, 1, 2, 2, 2, 3, 4, 5, 5, 6, 7, 7)
-_GROUPS = np.array([[float(g == k) for g in _GROUP_OF_ROW] for k in range(max(_GROUP_OF_ROW) + 1)], np.float32)  # [8,13]
+GROUP_OF_ROW = (0, 0, 1, 2, 2, 2, 3, 4, 5, 5, 6, 7, 7)
+_GROUPS = np.array([[float(g == k) for g in GROUP_OF_ROW] for k in range(max(GROUP_OF_ROW) + 1)], np.float32)  # [8,13]
 _MAG_ROW = CH["mag"]
 # Error-state columns each observation row depends on (the structural non-zeros of H; tests/test_ekf.py checks them):
 # GPS position/velocity and baro read one state each, the heading the attitude, flow/odometry/NHC velocity, attitude
 # (and flow the height). Products with H only visit these columns.
-_H_SUPPORT = ((0,), (1,), (2,), (3,), (4,), (5,), (2,), (6, 7, 8), (2, 3, 4, 5, 6, 7, 8), (2, 3, 4, 5, 6, 7, 8),
+H_SUPPORT = ((0,), (1,), (2,), (3,), (4,), (5,), (2,), (6, 7, 8), (2, 3, 4, 5, 6, 7, 8), (2, 3, 4, 5, 6, 7, 8),
               (3, 4, 5, 6, 7, 8), (3, 4, 5, 6, 7, 8), (3, 4, 5, 6, 7, 8))
-_H_COLS = tuple(sorted(set(sum(_H_SUPPORT, ()))))
+_H_COLS = tuple(sorted(set(sum(H_SUPPORT, ()))))
 
 
 def _observe(cfg: EKFConfig, pos, vel, r):
@@ -386,12 +370,12 @@ def _observe(cfg: EKFConfig, pos, vel, r):
 
 def _observe_err(cfg: EKFConfig, s: EKFState, dx):
   """Predicted observation rows [13] at the nominal state perturbed by the error state dx [15] (attitude error
-  applied on the world side, R' = (I + [theta]x) R): the function `_linearise` differentiates at dx = 0."""
+  applied on the world side, R' = (I + [theta]x) R): the function `linearise` differentiates at dx = 0."""
   r = quat_to_rot(s.quat)
   return _observe(cfg, s.pos + dx[POS], s.vel + dx[VEL], (jnp.eye(3) + _skew(dx[ATT])) @ r)
 
 
-def _linearise(cfg: EKFConfig, s: EKFState):
+def linearise(cfg: EKFConfig, s: EKFState):
   """Predicted observations [13] and their Jacobian H [13, 15] w.r.t. the error state, in closed form (the same as
   jax.jacfwd of `_observe_err` at 0, tests/test_ekf.py; jacfwd pushes 15 tangents through the rotation products,
   a large XLA kernel on a GPU).
@@ -421,14 +405,14 @@ def _linearise(cfg: EKFConfig, s: EKFState):
   return pred, jnp.stack(rows)
 
 
-def _innovations(cfg: EKFConfig, s: EKFState, z):
+def innovations(cfg: EKFConfig, s: EKFState, z):
   """Innovations [13] of the rows z [13] against the state (heading wrapped to (-pi, pi]) and H [13, 15] there."""
-  pred, H = _linearise(cfg, s)
+  pred, H = linearise(cfg, s)
   innov = z - pred
   return with_component(innov, _MAG_ROW, wrap_angle(innov[_MAG_ROW])), H
 
 
-def _row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
+def row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
   """Whether observation row i (order `_ROWS`) can be fused with this configuration (static), given the sensors
   `stale` that cannot have a fresh sample this tick."""
   name = _ROWS[i]
@@ -445,7 +429,7 @@ def _row_used(cfg: EKFConfig, i: int, stale: tuple = ()) -> bool:
   return True
 
 
-def _gate(innov, S, gate, enable):
+def innovation_gate(innov, S, gate, enable):
   """EKF2's innovation-consistency gates of one tick's rows against the predicted variances S [13].
 
   A group is rejected as a whole if any of its rows fails its gate. Returns (test ratio [13], accept [13] bool, the
@@ -459,15 +443,15 @@ def _gate(innov, S, gate, enable):
   return ratio, accept, jnp.where(accept, innov, 0.0)
 
 
-def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
+def rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
   """Gating and sequential fusion of the rows, unrolled in low-rank form for accelerators (see `_fuse`).
 
-  Products with H visit only its structural non-zeros (_H_SUPPORT), written as sums of scalars times rows of P (P is
+  Products with H visit only its structural non-zeros (H_SUPPORT), written as sums of scalars times rows of P (P is
   symmetric, so P h = sum_c h_c P[c, :]): elementwise work XLA fuses, where dense batched tiny matmuls are not. Each
   vector's entries are sliced out once and reused. Rows this vehicle never fuses are skipped statically.
   Returns (P [15, 15], dx [15], ratio [13], accept [13] bool).
   """
-  hs = [{c: H[i, c] for c in _H_SUPPORT[i]} for i in range(N_ROWS)]
+  hs = [{c: H[i, c] for c in H_SUPPORT[i]} for i in range(N_ROWS)]
 
   def entries(v):  # the entries of a [15]-vector (or rows of a matrix) that H's support can touch
     return {c: v[c] for c in _H_COLS}
@@ -476,14 +460,14 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple =
     return sum(h * ve[c] for c, h in hs[i].items())
 
   # PHt[i] = P_0 h_i [15]; a stale row is never enabled and its gate record is not kept: left at zero
-  PHt = [hdot(i, entries(P0)) if _row_used(cfg, i, stale) else jnp.zeros(N_ERR, P0.dtype) for i in range(N_ROWS)]
+  PHt = [hdot(i, entries(P0)) if row_used(cfg, i, stale) else jnp.zeros(N_ERR, P0.dtype) for i in range(N_ROWS)]
   S = jnp.stack([hdot(i, entries(PHt[i])) for i in range(N_ROWS)]) + R
-  ratio, accept, innov = _gate(innov, S, gate, enable)
+  ratio, accept, innov = innovation_gate(innov, S, gate, enable)
 
   us, ues, cs = [], [], []  # us[j] = P_{j-1} h_j (ues[j] its entries), cs[j] = 1 / (h_j' P_{j-1} h_j + R_j) or 0
   dx = jnp.zeros(N_ERR, P0.dtype)
   for i in range(N_ROWS):
-    if not _row_used(cfg, i, stale):
+    if not row_used(cfg, i, stale):
       continue
     pht = PHt[i]
     for u, ue, c in zip(us, ues, cs):
@@ -502,15 +486,15 @@ def _rows_unrolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple =
   return P, dx, ratio, accept
 
 
-def _rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
-  """The same gating and sequential fusion as `_rows_unrolled`, one dense row per iteration of a rolled loop: the
+def rows_rolled(cfg: EKFConfig, P0, H, innov, R, gate, enable, stale: tuple = ()):
+  """The same gating and sequential fusion as `rows_unrolled`, one dense row per iteration of a rolled loop: the
   CPU form (small trace, quick to compile; the unrolled form doubles the env's compile time there).
   P_i = P_{i-1} - c_i u_i u_i' with u_i = P_{i-1} h_i, c_i = 1 / (h_i' u_i + R_i) (exactly symmetric).
   Returns (P [15, 15], dx [15], ratio [13], accept [13] bool).
   """
   S = jnp.einsum("mi,ij,mj->m", H, P0, H) + R
-  ratio, accept, innov = _gate(innov, S, gate, enable)
-  used = jnp.asarray([_row_used(cfg, i, stale) for i in range(N_ROWS)]) & accept
+  ratio, accept, innov = innovation_gate(innov, S, gate, enable)
+  used = jnp.asarray([row_used(cfg, i, stale) for i in range(N_ROWS)]) & accept
 
   def body(i, carry):
     P, dx = carry
@@ -536,11 +520,11 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
   * rolled (CPU): one dense row update per iteration of a fori_loop, a small trace that compiles quickly.
   Returns (state, innov[13], test_ratio[13], accepted[13] bool).
   """
-  innov, H = _innovations(cfg, s, z)
+  innov, H = innovations(cfg, s, z)
   R = noise ** 2
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
-  rows = _rows_unrolled if unrolled else _rows_rolled
+  rows = rows_unrolled if unrolled else rows_rolled
   P, dx, ratio, accept = rows(cfg, as_square(s.P), H, innov, R, gate, enable, stale)
   return _inject(cfg, s.replace(P=layout_like(P, s.P)), dx), innov, ratio, accept
 
@@ -549,52 +533,52 @@ def _fuse(cfg: EKFConfig, s: EKFState, z, noise, gate, enable, unrolled: bool | 
 # state: (its columns, the observation rows whose acceptance counts as fused, whether all or any of them must be
 # accepted). A block is reset on a tick where it is due (its sensor has a fresh sample and its age would pass the
 # timeout) and its rows were not accepted; its rows and columns of P are cleared and its variance set to
-# `_reset_variances`.
-_RESETS = (((0, 1), (0, 1), "all"),        # horizontal position: GPS x, y
+# `reset_variances`.
+RESETS = (((0, 1), (0, 1), "all"),        # horizontal position: GPS x, y
            ((3, 4, 5), (3, 4, 5), "all"),  # velocity: GPS velocity
            ((2,), (2, 6), "any"))          # height: GPS height or baro
 
 
-def _reset_variances(cfg: EKFConfig) -> tuple:
-  """Variance each `_RESETS` block is reset to (its measurement's noise variance)."""
+def reset_variances(cfg: EKFConfig) -> tuple:
+  """Variance each `RESETS` block is reset to (its measurement's noise variance)."""
   return (float(cfg.gps_pos_noise_h) ** 2, float(cfg.gps_vel_noise) ** 2, float(cfg.baro_noise) ** 2)
 
 
 def _blocks_fused(accept):
-  """[3] bool: whether each `_RESETS` block's measurement counts as fused this tick, from accept [13] bool (static
+  """[3] bool: whether each `RESETS` block's measurement counts as fused this tick, from accept [13] bool (static
   slices: no gather under vmap)."""
   return jnp.stack([functools.reduce(operator.and_ if how == "all" else operator.or_, [accept[r] for r in rows])
-                    for _, rows, how in _RESETS])
+                    for _, rows, how in RESETS])
 
 
 def _resets(accept, due):
-  """[3] bool: which `_RESETS` blocks are reset this tick, from accept [13] bool and due [3] bool."""
+  """[3] bool: which `RESETS` blocks are reset this tick, from accept [13] bool and due [3] bool."""
   return due & ~_blocks_fused(accept)
 
 
-def _reset_and_condition(cfg: EKFConfig, P, accept, due):
+def reset_and_condition(cfg: EKFConfig, P, accept, due):
   """P [15, 15] after the fusion: the timeout resets of the blocks `_resets` picks, then the tick's closing clean-up
-  (`_condition` without symmetrisation: P is exactly symmetric here)."""
+  (`condition` without symmetrisation: P is exactly symmetric here)."""
   cleared, new_var = jnp.zeros(N_ERR, bool), jnp.zeros(N_ERR, P.dtype)   # the blocks are disjoint: one pass does all
-  for (cols, _, _), var, do in zip(_RESETS, _reset_variances(cfg), _resets(accept, due)):
+  for (cols, _, _), var, do in zip(RESETS, reset_variances(cfg), _resets(accept, due)):
     block = np.isin(np.arange(N_ERR), cols)
     cleared = cleared | (block & do)
     new_var = jnp.where(block & do, var, new_var)
   P = jnp.where(cleared[:, None] | cleared[None, :], 0.0, P) + _EYE * new_var[None, :]
-  return _condition(P, symmetrise=False)
+  return condition(P, symmetrise=False)
 
 
-def _cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
+def cov_tick(cfg: EKFConfig, P, A, B, dt, H, innov, R, gate, enable, due, stale: tuple = (),
               unrolled: bool | None = None):
-  """The tick's covariance work in XLA: prediction of P (`_predict_cov`), gates, sequential fusion (`_rows_*`), the
-  timeout resets of the blocks that are due ([3] bool, order `_RESETS`) and the closing clean-up.
+  """The tick's covariance work in XLA: prediction of P (`predict_cov`), gates, sequential fusion (`_rows_*`), the
+  timeout resets of the blocks that are due ([3] bool, order `RESETS`) and the closing clean-up.
   Returns (P in its layout, dx [15], test ratio [13], accept [13] bool). `ekf_lanes.tick_body` is the same filter
   per GPU lane."""
   if unrolled is None:
     unrolled = jax.default_backend() != "cpu"
-  rows = _rows_unrolled if unrolled else _rows_rolled
-  P_new, dx, ratio, accept = rows(cfg, _predict_cov(cfg, as_square(P), A, B, dt), H, innov, R, gate, enable, stale)
-  return layout_like(_reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
+  rows = rows_unrolled if unrolled else rows_rolled
+  P_new, dx, ratio, accept = rows(cfg, predict_cov(cfg, as_square(P), A, B, dt), H, innov, R, gate, enable, stale)
+  return layout_like(reset_and_condition(cfg, P_new, accept, due), P), dx, ratio, accept
 
 
 def reset_block(P, idx, var, do):
@@ -609,7 +593,7 @@ def reset_block(P, idx, var, do):
   return P + _EYE * jnp.where(mask, var, 0.0)[None, :]
 
 
-def _noise_and_gates(cfg: EKFConfig):
+def noise_and_gates(cfg: EKFConfig):
   """Measurement noise std [13] and gates [13] (sigma) of the observation rows (order `_ROWS`), as numpy constants."""
   noise = np.array([cfg.gps_pos_noise_h] * 2 + [cfg.gps_pos_noise_v] + [cfg.gps_vel_noise] * 3
                    + [cfg.baro_noise, cfg.mag_heading_noise] + [cfg.flow_noise] * 2 + [cfg.odom_noise]
@@ -619,19 +603,19 @@ def _noise_and_gates(cfg: EKFConfig):
   return noise, gate
 
 
-def _measurement_rows(cfg: EKFConfig, readings: SensorReadings):
+def measurement_rows(cfg: EKFConfig, readings: SensorReadings):
   """Observation rows of one tick (order `_ROWS`): (z [13], noise std [13], gate [13] sigma)."""
   z = jnp.concatenate([readings.gps_pos, readings.gps_vel, readings.baro_alt[None], readings.mag_yaw[None],
                        readings.flow, readings.odom_speed[None], jnp.zeros(2)]).astype(jnp.float32)
-  noise, gate = _noise_and_gates(cfg)
+  noise, gate = noise_and_gates(cfg)
   return z, jnp.asarray(noise), jnp.asarray(gate)
 
 
 def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorReadings):
   """|innovation| / sqrt(H P H' + R) [N_CHANNELS] of every channel's current reading against `state`, without fusing
   anything (whether or not the channel has a fresh sample): how many sigmas a sensor disagrees with this estimate."""
-  z, noise, _ = _measurement_rows(cfg, readings)
-  innov, H = _innovations(cfg, state, z)
+  z, noise, _ = measurement_rows(cfg, readings)
+  innov, H = innovations(cfg, state, z)
   S = _hph(H, state.P, N_CHANNELS) + noise[:N_CHANNELS] ** 2
   out = jnp.abs(innov[:N_CHANNELS]) / jnp.sqrt(S)
   return jnp.where(jnp.isfinite(out), out, 1e3)
@@ -639,11 +623,11 @@ def normalized_innovations(cfg: EKFConfig, state: EKFState, readings: SensorRead
 
 def _hph(H, P, n_rows: int):
   """h_i' P h_i [n_rows] of the first n_rows rows of H [13, 15], P symmetric (any layout), over H's structural
-  non-zeros only (_H_SUPPORT): sums of scalar products, which XLA fuses (an einsum is a batched-matmul kernel of its
+  non-zeros only (H_SUPPORT): sums of scalar products, which XLA fuses (an einsum is a batched-matmul kernel of its
   own under vmap, every tick on a GPU)."""
   out = []
   for i in range(n_rows):
-    sup = _H_SUPPORT[i]
+    sup = H_SUPPORT[i]
     h = [H[i, c] for c in sup]
     out.append(sum(h[a] * h[a] * p_entry(P, sup[a], sup[a]) for a in range(len(sup)))
                + 2.0 * sum(h[a] * h[b] * p_entry(P, sup[a], sup[b]) for a in range(len(sup)) for b in range(a)))
@@ -677,8 +661,8 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
   def fresh_rows(flow):
     return jnp.stack([gps, gps, gps, gps, gps, gps, baro, mag, flow, flow, odom, nhc, nhc])
 
-  z, noise, gate = _measurement_rows(cfg, readings)
-  # timeout resets due this tick if the block's rows are not accepted (`_RESETS` order; applied to P in the cov tick)
+  z, noise, gate = measurement_rows(cfg, readings)
+  # timeout resets due this tick if the block's rows are not accepted (`RESETS` order; applied to P in the cov tick)
   ages = jnp.stack([state.gps_pos_age, state.gps_vel_age, state.hgt_age]) + dt
   due = jnp.stack([gps, gps, baro]) & (ages > cfg.reset_timeout)
   if prep is not None:   # the prediction, H, the innovations and the covariance work elsewhere (a kernel)
@@ -689,11 +673,11 @@ def ekf_step(cfg: EKFConfig, state: EKFState, readings: SensorReadings, dt, stal
     s = state.replace(pos=pos, vel=vel, quat=quat)
     fresh = fresh_rows(flow_pre & (s.pos[2] >= cfg.flow_min_height))
   else:
-    s, A, B = _predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
+    s, A, B = predict_nominal(cfg, state, readings.gyro, readings.accel, dt)
     fresh = fresh_rows(flow_pre & (s.pos[2] >= cfg.flow_min_height))
     enable = with_component(fresh, 2, gps & cfg.fuse_gps_height)
-    innov, H = _innovations(cfg, s, z)
-    P, dx, ratio, accept = _cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due, tuple(stale))
+    innov, H = innovations(cfg, s, z)
+    P, dx, ratio, accept = cov_tick(cfg, state.P, A, B, dt, H, innov, noise ** 2, gate, enable, due, tuple(stale))
   s = _inject(cfg, s.replace(P=P), dx)
 
   # per-channel records (held while a channel is not fresh)

@@ -104,26 +104,26 @@ class CovSpec:
 
 def cov_spec(cfg: ekf_lib.EKFConfig, dt: float, stale: tuple) -> CovSpec:
   """The static description of the tick's covariance work that the kernel is traced for."""
-  noise, gate = ekf_lib._noise_and_gates(cfg)
+  noise, gate = ekf_lib.noise_and_gates(cfg)
   dt = float(dt)
-  q = ekf_lib._process_noise(cfg, dt, np)
+  q = ekf_lib.process_noise(cfg, dt, np)
   return CovSpec(
     dt=dt, q=tuple(float(v) for v in q), R=tuple(float(v) for v in noise.astype(np.float32) ** 2),
     gate=tuple(float(v) for v in gate),
-    used=tuple(ekf_lib._row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=ekf_lib._GROUP_OF_ROW,
-    var_min=tuple(float(v) for v in ekf_lib._VAR_MIN), var_max=tuple(float(v) for v in ekf_lib._VAR_MAX),
-    h_support=ekf_lib._H_SUPPORT)
+    used=tuple(ekf_lib.row_used(cfg, i, stale) for i in range(N_ROWS)), group_of_row=ekf_lib.GROUP_OF_ROW,
+    var_min=tuple(float(v) for v in ekf_lib.VAR_MIN), var_max=tuple(float(v) for v in ekf_lib.VAR_MAX),
+    h_support=ekf_lib.H_SUPPORT)
 
 
 def resets_of(cfg: ekf_lib.EKFConfig) -> tuple:
-  """ekf._RESETS with their variances, as the static tuple the kernel is traced for."""
+  """ekf.RESETS with their variances, as the static tuple the kernel is traced for."""
   return tuple((tuple(cols), tuple(rows), how, float(v))
-               for (cols, rows, how), v in zip(ekf_lib._RESETS, ekf_lib._reset_variances(cfg)))
+               for (cols, rows, how), v in zip(ekf_lib.RESETS, ekf_lib.reset_variances(cfg)))
 
 
 @struct.dataclass
 class _Nominal:
-  """The nominal state's fields `ekf._predict_nominal` and `ekf._innovations` read (an EKFState's, without P and the
+  """The nominal state's fields `ekf.predict_nominal` and `ekf.innovations` read (an EKFState's, without P and the
   records)."""
   pos: jnp.ndarray
   vel: jnp.ndarray
@@ -137,13 +137,13 @@ def reference_tick(cfg: ekf_lib.EKFConfig, dt: float, stale: tuple, P, quat, vel
   """What `prep_tick` computes, for one vehicle in XLA (the reference, and the unbatched path of `_lanes_tick`).
   enable [13] bool: the flow rows before the predicted-height check. Returns (P, dx [15], ratio [13], accept [13]
   bool, innov [13] before the gates, the predicted pos [3], vel [3], quat [4])."""
-  noise, gate = ekf_lib._noise_and_gates(cfg)
-  s, A, B = ekf_lib._predict_nominal(cfg, _Nominal(pos=pos, vel=vel, quat=quat, gyro_bias=gyro_bias,
+  noise, gate = ekf_lib.noise_and_gates(cfg)
+  s, A, B = ekf_lib.predict_nominal(cfg, _Nominal(pos=pos, vel=vel, quat=quat, gyro_bias=gyro_bias,
                                                    accel_bias=accel_bias), gyro, accel, dt)
   rows = jnp.arange(N_ROWS)
   enable = enable & jnp.where((rows == 8) | (rows == 9), s.pos[2] >= cfg.flow_min_height, True)
-  innov, H = ekf_lib._innovations(cfg, s, z)
-  P, dx, ratio, accept = ekf_lib._cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate),
+  innov, H = ekf_lib.innovations(cfg, s, z)
+  P, dx, ratio, accept = ekf_lib.cov_tick(cfg, P, A, B, dt, H, innov, jnp.asarray(noise) ** 2, jnp.asarray(gate),
                                            enable, due, stale, unrolled=True)
   return P, dx, ratio, accept, innov, s.pos, s.vel, s.quat
 
@@ -176,12 +176,12 @@ def _finite(x):
 
 
 def tick_body(spec, resets, p_load, p_store, store, inputs, o):
-  """The per-lane covariance tick (`ekf._cov_tick`'s filter) as straight-line code on [lanes] vectors, one vehicle
+  """The per-lane covariance tick (`ekf.cov_tick`'s filter) as straight-line code on [lanes] vectors, one vehicle
   per lane.
 
   p_load(i, j) -> P[i, j] and p_store(i, j, v) sets P[i, j] and P[j, i], both for i <= j; store(k, v) sets output row
   k; every value a [lanes] vector. P is read before the first store, so it may be overwritten in place.
-  resets: ((cols, rows, how, var), ...) ekf._RESETS with their variances (`resets_of`).
+  resets: ((cols, rows, how, var), ...) ekf.RESETS with their variances (`resets_of`).
   inputs: dict(A, B [3][3] F's blocks, hd {row: {col: h}} H on `spec.h_entries()`, innov [13], enable [13] bool,
   due [3] bool), as `prep_inputs` returns them. o: where the outputs go (attributes dx, ratio, acc: `PrepLayout`)."""
   n = N_ERR
@@ -190,7 +190,7 @@ def tick_body(spec, resets, p_load, p_store, store, inputs, o):
   A, B = inputs["A"], inputs["B"]
   dt = spec.dt
 
-  # ---- prediction (ekf._predict_cov): FP = P + E P, X = FP + FP E', + Q, then _condition with symmetrisation
+  # ---- prediction (ekf.predict_cov): FP = P + E P, X = FP + FP E', + Q, then ekf.condition with symmetrisation
   def s3(t):
     return (t[0] + t[1]) + t[2]
   FP = [[None] * n for _ in range(n)]
@@ -217,7 +217,7 @@ def tick_body(spec, resets, p_load, p_store, store, inputs, o):
     X[i][i] = X[i][i] + spec.q[i]
 
   def condition(S, sym):
-    """ekf._condition on the triangle: S[i][j] for i <= j."""
+    """ekf.condition on the triangle: S[i][j] for i <= j."""
     T = {}
     for (i, j) in TRI:
       v = 0.5 * (S[i][j] + S[j][i]) if sym else S[i][j]
@@ -236,7 +236,7 @@ def tick_body(spec, resets, p_load, p_store, store, inputs, o):
 
   P = condition(X, True)
 
-  # ---- gates (ekf._gate) and the sequential fusion of the accepted rows
+  # ---- gates (ekf.innovation_gate) and the sequential fusion of the accepted rows
   hd = inputs["hd"]
   used = [i for i in range(N_ROWS) if spec.used[i]]
 
@@ -266,7 +266,7 @@ def tick_body(spec, resets, p_load, p_store, store, inputs, o):
   accept = [enable[i] & ~gbad[spec.group_of_row[i]] for i in range(N_ROWS)]
   innov = [jnp.where(accept[i], innov[i], 0.0) for i in range(N_ROWS)]
 
-  # Sequential scalar fusion with P updated after each row (ekf._rows_rolled's form; ekf._rows_unrolled's low-rank
+  # Sequential scalar fusion with P updated after each row (ekf.rows_rolled's form; ekf.rows_unrolled's low-rank
   # form, the XLA reference, is the same filter): per row P h_i from the current P, then P -= c (P h_i)(P h_i)' on
   # the triangle. Live across rows: P's 120 entries, dx, one [15] vector (the low-rank form would keep every row's
   # P_0 h_i and u_i, ~390 values, more than a thread's registers).
@@ -281,7 +281,7 @@ def tick_body(spec, resets, p_load, p_store, store, inputs, o):
       P[a][b] = P[b][a] = P[a][b] - cp[a] * pht[b]
   Pn = P
 
-  # ---- timeout resets, closing clean-up (ekf._reset_and_condition)
+  # ---- timeout resets, closing clean-up (ekf.reset_and_condition)
   cleared = [None] * n
   new_var = [0.0] * n
   for b, (cols, rows, how, var) in enumerate(resets):
@@ -379,7 +379,7 @@ def _lanes_call(P, aux, n_rows, n_out, body, in_place):
 
 
 # The tick's inputs are prepared in the kernel: F's blocks, H and the innovations computed per lane from the nominal
-# state and the readings (what ekf._predict_nominal and ekf._innovations do in XLA), so XLA hands the kernel 51 rows,
+# state and the readings (what ekf.predict_nominal and ekf.innovations do in XLA), so XLA hands the kernel 51 rows,
 # each a copy of one state or reading component, and the prepared inputs stay in registers.
 _PREP_IN = (("quat", 4), ("vel", 3), ("pos", 3), ("gb", 3), ("ab", 3), ("gyro", 3), ("accel", 3), ("z", N_ROWS),
             ("en", N_ROWS), ("due", 3))
@@ -399,7 +399,7 @@ class PrepLayout:
   """Rows of `prep_tick`'s inputs in aux and of its outputs over them (the kernel's out block: rows [0, n_out)).
 
   in (`_PREP_IN`): quat [4], vel [3], pos [3], gyro_bias [3], accel_bias [3] (the nominal state before the tick),
-  gyro [3], accel [3] (the IMU sample, unclipped), z [13] (`ekf._measurement_rows`), enable [13] (1.0 / 0.0, the flow
+  gyro [3], accel [3] (the IMU sample, unclipped), z [13] (`ekf.measurement_rows`), enable [13] (1.0 / 0.0, the flow
   rows before the predicted-height check), due [3]. out (`_PREP_OUT`): dx [15], ratio [13], accept [13] (1.0 / 0.0),
   innov [13] (before the gates), the predicted pos [3], vel [3], quat [4]."""
 
@@ -424,7 +424,7 @@ def _q_mul(a, b):
 
 
 def _q_rotvec(v):
-  """ekf._rotvec_to_quat on components."""
+  """math3d.rotvec_to_quat on components."""
   a2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
   small = a2 < 1e-8
   a = _sqrt(jnp.where(small, 1.0, a2))
@@ -434,7 +434,7 @@ def _q_rotvec(v):
 
 
 def _q_normalize(q):
-  """ekf._normalize_quat on components."""
+  """math3d.normalize_quat on components."""
   n = _sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
   ok = _finite(n) & (n > 1e-6)
   d = jnp.where(ok, n, 1.0)
@@ -450,7 +450,7 @@ def _q_rot(q):
 
 
 def prep_inputs(spec, flow_min_height: float, x: dict):
-  """ekf._predict_nominal and ekf._innovations per lane. x: the `PrepLayout` inputs by name, lists of [lanes]
+  """ekf.predict_nominal and ekf.innovations per lane. x: the `PrepLayout` inputs by name, lists of [lanes]
   vectors. Returns (`tick_body`'s inputs, the innovations before the gates [13],
   the predicted pos [3], vel [3], quat [4])."""
   from specguard_jax.sensors import ACCEL_RANGE, GRAVITY, GYRO_RANGE
@@ -468,7 +468,7 @@ def prep_inputs(spec, flow_min_height: float, x: dict):
   A = [[zero, ra[2] * dt, -ra[1] * dt], [-ra[2] * dt, zero, ra[0] * dt], [ra[1] * dt, -ra[0] * dt, zero]]
   B = [[-rm[i][m] * dt for m in range(3)] for i in range(3)]
 
-  # ekf._linearise at the predicted state
+  # ekf.linearise at the predicted state
   r = _q_rot(quat)
   vb = [r[0][c] * vel[0] + r[1][c] * vel[1] + r[2][c] * vel[2] for c in range(3)]
   hgt = jnp.maximum(pos[2], flow_min_height)
@@ -555,7 +555,7 @@ def prep_tick(spec, resets, P, quat, vel, pos, gyro_bias, accel_bias, gyro, acce
   H, the innovations (`prep_inputs`) and the covariance work (`tick_body`), per lane.
 
   P: [B, 121] packed (or any layout, returned in it). quat [B, 4], vel, pos, gyro_bias, accel_bias [B, 3]: the
-  nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf._measurement_rows`; enable
+  nominal state before the tick; gyro, accel [B, 3]: the IMU sample; z [B, 13]: `ekf.measurement_rows`; enable
   [B, 13] bool (the flow rows before the predicted-height check); due [B, 3] bool; flow_min_height: the EKF
   config's (m). Returns (P, dx [B, 15], ratio
   [B, 13], accept [B, 13] bool, innov [B, 13] before the gates, pos [B, 3], vel [B, 3], quat [B, 4] predicted)."""

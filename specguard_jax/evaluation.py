@@ -11,6 +11,18 @@ cause a violation?) and its attack-free records are the ground-truth run T_GT of
 A `Setting` is a named attack distribution (specguard_jax.attacks.AttackConfig, None = attack-free): a random
 Table 3 attack on its sensor(s) (onset 15-50 % into the mission, 15-40 s).
 
+Campaigns (`campaign_settings`, names '<campaign>/<sensors>/<profile>'): harder attack distributions, settings like
+the others (the same missions, worlds and noise seeds; the same sensors and biases as the random settings of mission
+j draw where the sensors agree, since only the timing options differ):
+  long      onset as above, lasting until the episode ends (through the landing);
+  hazard    onset a lead time (HAZARD_LEAD_S) before a hazard point of the mission in its world (envs.hazards: the
+            nominal path's closest approach to an obstacle or a geofence, its sharpest turn, the start of the loiter
+            or of the landing; one drawn per mission, the same in every hazard setting of that mission), overt,
+            for the random duration above;
+  designed  stealthy ramps at the rate designed against the calibrated detector (calibration.stealthy.design_rates:
+            the fastest ramp it does not flag for a hidden time), onset as above, lasting until the episode ends;
+  multi     two sensors at once: MULTI_PAIRS.
+
 `rollout` returns per-mission records (numpy, leading axis = missions, settings concatenated in order):
   setting [n] int, mission [n] int (index j), world [n] int
   violated [n, S] bool   spec robustness over the whole episode < 0 (online STL monitor, = offline robustness)
@@ -26,6 +38,8 @@ Table 3 attack on its sensor(s) (onset 15-50 % into the mission, 15-40 s).
   end_ok [n] bool        instantaneous compliance at the last step of that window
   override_s [n] s       time the recovery policy's override was active
   min_obstacle [n] m     closest approach to an obstacle
+  hazard_kind [n] int    hazard-timed settings: the hazard point (index into envs.hazards.HAZARD_KINDS; -1 none or
+                         not hazard-timed);  hazard_t [n] s its nominal time (BIG when not hazard-timed)
 Instantaneous compliance of a spec at a step = its binary per-step reward (specguard_jax.rewards: the body of an
 always-spec, guard -> condition for S5/S7/S10), over the specs that carry a reward.
 Trajectories (`n_traj` > 0): the first n_traj missions of every setting also record per step
@@ -44,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs as envs_lib
+from envs import hazards as hazards_lib
 from envs import missions as missions_lib
 from envs.base import tree_where
 from specguard_jax import attacks as attacks_lib
@@ -54,11 +69,19 @@ BIG = 1e9
 TRAJ_FIELDS = ("x", "y", "z", "est_x", "est_y", "est_z", "yaw", "est_yaw", "altitude", "alarm", "override", "time")
 
 
+CAMPAIGNS = ("long", "hazard", "designed", "multi")
+MULTI_PAIRS = (("gps", "flow"), ("gps", "mag"), ("gps", "baro"), ("gps", "gyro"))
+HAZARD_LEAD_S = (2.0, 5.0)   # s before the hazard point: the EKF and the autopilot need a few seconds to go astray
+_HAZARD_SALT = 0x48415A   # folds mission j's attack key into its hazard-point key (shared by its hazard settings)
+
+
 @dataclasses.dataclass(frozen=True)
 class Setting:
-  """A named attack distribution: attack None = attack-free."""
+  """A named attack distribution: attack None = attack-free. hazard_lead_s: (lo, hi) s, the lead time before the
+  hazard point when attack.onset == 'given' (hazard-timed)."""
   name: str
   attack: attacks_lib.AttackConfig | None = None
+  hazard_lead_s: tuple = HAZARD_LEAD_S
 
   @property
   def attacked(self) -> bool:
@@ -73,6 +96,56 @@ def setting(sensors=None, profile: str = "overt") -> Setting:
   sensors = (sensors,) if isinstance(sensors, str) else tuple(sensors)
   acfg = attacks_lib.AttackConfig(sensors=sensors, profiles=(profile,), n_sensors=len(sensors))
   return Setting(f"{'+'.join(sensors)}/{profile}", acfg)
+
+
+def campaign_setting(campaign: str, sensors, profile: str = "overt", designed_rates=None,
+                     hazard_lead_s: tuple = HAZARD_LEAD_S) -> Setting:
+  """Setting of an attack campaign (module docstring): campaign_setting('hazard', 'gps') -> 'hazard/gps/overt'.
+  designed_rates: {sensor: ramp rate (bias units / s)} for 'designed' (every attacked sensor needs one; the profile
+  is then stealthy)."""
+  if campaign not in CAMPAIGNS:
+    raise ValueError(f"unknown campaign {campaign!r}; choose from {', '.join(CAMPAIGNS)}")
+  sensors = (sensors,) if isinstance(sensors, str) else tuple(sensors)
+  kw = {}
+  if campaign == "long":
+    kw = dict(until_end=True)
+  elif campaign == "hazard":
+    kw = dict(onset="given")
+  elif campaign == "designed":
+    missing = [x for x in sensors if x not in (designed_rates or {})]
+    if missing:
+      raise ValueError(f"designed campaign: no designed ramp rate for {', '.join(missing)}")
+    profile = "stealthy"
+    kw = dict(until_end=True, ramp_rate=tuple((x, float(designed_rates[x])) for x in sensors))
+  elif len(sensors) < 2:
+    raise ValueError(f"the multi campaign attacks two or more sensors at once, got {sensors}")
+  acfg = attacks_lib.AttackConfig(sensors=sensors, profiles=(profile,), n_sensors=len(sensors), **kw)
+  return Setting(f"{campaign}/{'+'.join(sensors)}/{profile}", acfg, tuple(hazard_lead_s))
+
+
+def campaign_settings(campaigns=CAMPAIGNS, sensors=attacks_lib.SENSOR_NAMES, profiles=("overt",),
+                      designed_rates=None, hazard_lead_s: tuple = HAZARD_LEAD_S) -> tuple:
+  """The settings of `campaigns` over single `sensors` (the vehicle's): long x sensors x profiles, hazard x sensors
+  (overt), designed x the sensors with a designed rate (stealthy), multi x MULTI_PAIRS within sensors x profiles."""
+  out = []
+  for c in campaigns:
+    if c == "long":
+      out += [campaign_setting(c, x, p) for x in sensors for p in profiles]
+    elif c == "hazard":
+      out += [campaign_setting(c, x, "overt", hazard_lead_s=hazard_lead_s) for x in sensors]
+    elif c == "designed":
+      out += [campaign_setting(c, x, designed_rates=designed_rates) for x in sensors if x in (designed_rates or {})]
+    elif c == "multi":
+      out += [campaign_setting(c, pair, p) for pair in MULTI_PAIRS if set(pair) <= set(sensors) for p in profiles]
+    else:
+      raise ValueError(f"unknown campaign {c!r}; choose from {', '.join(CAMPAIGNS)}")
+  return tuple(out)
+
+
+def campaign_of(name: str) -> str | None:
+  """The campaign of a setting name ('hazard/gps/overt' -> 'hazard'; 'gps/overt' or 'attack_free' -> None)."""
+  parts = name.split("/")
+  return parts[0] if len(parts) == 3 else None
 
 
 def default_settings(sensors=attacks_lib.SENSOR_NAMES, profiles=attacks_lib.PROFILES) -> tuple:
@@ -119,18 +192,27 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   setting_id = jnp.repeat(jnp.arange(n_set), n)
   world_ids = jnp.asarray(env.world_ids, jnp.int32)
   salts = jnp.asarray([_setting_salt(s) for s in settings], jnp.uint32)
+  timed = [s.attack is not None and s.attack.onset == "given" for s in settings]
 
   def reset_one(j, sid):
     k_m, k_a, k_w, k_r = jax.random.split(jax.random.fold_in(key, j), 4)
     mission = missions_lib.generate_mission(env.mission_cfg, k_m)
+    k_h = jax.random.fold_in(k_a, _HAZARD_SALT)
     k_a = jax.random.fold_in(k_a, salts[sid])
-    scheds = [attacks_lib.no_attack() if s.attack is None else
-              attacks_lib.sample_attack(s.attack, k_a, mission.nominal_duration) for s in settings]
-    attack = jax.tree.map(lambda *xs: jnp.stack(xs)[sid], *scheds)
     wid = world_ids[jax.random.randint(k_w, (), 0, len(env.world_ids))]
-    return env.reset_in_world(k_r, wid, mission, attack), wid
+    # The attack only enters the state's info at reset: reset first, so hazard timing can read the world.
+    state = env.reset_in_world(k_r, wid, mission, attacks_lib.no_attack())
+    hz = [hazards_lib.hazard_onset(mission, state.info["world"], env.mission_cfg, k_h, s.hazard_lead_s)
+          if t else None for s, t in zip(settings, timed)]
+    scheds = [attacks_lib.no_attack() if s.attack is None else
+              attacks_lib.sample_attack(s.attack, k_a, mission.nominal_duration, h[0] if h else None)
+              for s, h in zip(settings, hz)]
+    attack = jax.tree.map(lambda *xs: jnp.stack(xs)[sid], *scheds)
+    kind = jnp.stack([h[1] if h else jnp.int32(-1) for h in hz])[sid]
+    t_h = jnp.stack([h[2] if h else jnp.float32(BIG) for h in hz])[sid]
+    return state.replace(info=dict(state.info, attack=attack)), wid, kind, t_h
 
-  state, wid = jax.vmap(reset_one)(mission_idx, setting_id)
+  state, wid, hazard_kind, hazard_t = jax.vmap(reset_one)(mission_idx, setting_id)
   step = jax.vmap(env.step)
   has_det = "alarm" in state.info
   weights = env.reward_fn.weights() > 0
@@ -198,7 +280,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
          "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "last_bad": rec["last_bad"],
          "end_ok": rec["end_ok"], "override_s": rec["override_s"], "waypoints": mission.waypoints,
-         "n_waypoints": mission.n_waypoints}
+         "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind, "hazard_t": hazard_t}
   return out, rec.get("traj"), t
 
 

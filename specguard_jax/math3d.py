@@ -97,3 +97,20 @@ def with_component(v, k: int, x):
 def scale_head(v, k: int, f):
   """v [..., n] with its first k (static) components multiplied by f [...]: `v.at[..., :k].multiply(f)` as a select."""
   return jnp.where(jnp.arange(v.shape[-1]) < k, v * jnp.expand_dims(f, -1), v)
+
+
+def rotvec_to_quat(v):
+  """[3] rotation vector (rad) -> [4] unit quaternion; smooth at 0."""
+  a2 = dot(v, v)
+  small = a2 < 1e-8
+  a = jnp.sqrt(jnp.where(small, 1.0, a2))
+  s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
+  c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
+  return jnp.concatenate([c[None], s * v])
+
+
+def normalize_quat(q):
+  """[4] -> [4] unit quaternion; the identity where q is not finite or ~0."""
+  n = norm(q)
+  ok = jnp.isfinite(n) & (n > 1e-6)
+  return jnp.where(ok, q / jnp.where(ok, n, 1.0), jnp.array([1.0, 0.0, 0.0, 0.0]))

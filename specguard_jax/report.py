@@ -29,6 +29,7 @@ PAPER = {
     "rover_real": {"svr": 5.0, "rsr": 100.0, "md": 5.88},
     "t2r": "SpecGuard-RC recovers 3x faster than SpecGuard-PC (CDF, Fig. 3b)",
 }
+CAMPAIGN_ORDER = ("long", "hazard", "designed", "multi", "redteam")
 SIM_LINE = ("Our numbers come from our MJX simulator (specguard-jax: MuJoCo MJX physics, our PX4/ArduPilot-like "
             "autopilots, sensors, EKF and attacks), not AirSim (the paper's AirSim/PX4 setup); compare shapes and ratios, not "
             "absolute values.")
@@ -59,7 +60,13 @@ def _profile(name: str):
 
 
 def _single(name: str) -> bool:
-  return "/" in name and "+" not in name
+  return name.count("/") == 1 and "+" not in name
+
+
+def _campaign(name: str):
+  """'hazard/gps/overt' -> 'hazard' (a campaign setting, evaluation.campaign_settings); else None."""
+  parts = name.split("/")
+  return parts[0] if len(parts) == 3 else None
 
 
 def build(results: dict, records: dict, meta: dict) -> dict:
@@ -90,6 +97,8 @@ def build(results: dict, records: dict, meta: dict) -> dict:
         if _single(s):
           for key in (f"pooled/{_profile(s)}", "pooled/attacked"):
             pools.setdefault(key, []).append((r, tw, gt_all))
+        elif _campaign(s):
+          pools.setdefault(f"campaign/{_campaign(s)}", []).append((r, tw, gt_all))
       for key, parts in pools.items():
         r = M.concat([p[0] for p in parts])
         tw = M.concat([p[1] for p in parts]) if twin is not None else None
@@ -170,7 +179,30 @@ def experiments(rep) -> dict:
                              "delay": main[c].get(f"pooled/{p}", {}).get("detection_delay")} for p in profiles}
                      for c in ctrls}
   ex["shape"] = shape_statements(ex, sg)
+  ex["hard"] = hard_table(rep)
   return ex
+
+
+def hard_table(rep, group="main") -> dict:
+  """The hard suite's opening table: {campaign: {controller: {svr, critical, rsr, md}}} over the campaign's
+  settings pooled ('campaign/<name>'), plus 'attack_free'. Rates as {'value', 'ci', 'k', 'n'} (fractions); md as
+  {'mean', 'ci', 'median', 'n'} (%). No protection's SVR is the share of attacked missions with any violation (its
+  twin is itself); every other controller's is over the missions no protection violated (metrics.summarize)."""
+  ms = rep["groups"].get(group, {}).get("metrics", {})
+  keys = sorted({k for v in ms.values() for k in v if k.startswith("campaign/")},
+                key=lambda k: (CAMPAIGN_ORDER.index(k[9:]) if k[9:] in CAMPAIGN_ORDER else 99, k))
+  out = {}
+  for k in (["attack_free"] + keys) if keys else []:
+    row = {}
+    for c, v in ms.items():
+      m = v.get(k)
+      if not m:
+        continue
+      svr = m.get("svr_all_rate") if (c == "no_protection" or k == "attack_free") else m.get("svr_rate")
+      row[c] = {"svr": svr, "critical": m.get("critical_rate"), "rsr": m.get("rsr_rate"), "md": m.get("md_stats"),
+                "missions": m.get("missions"), "settings": m.get("settings", 1)}
+    out[k.replace("campaign/", "")] = row
+  return out
 
 
 def shape_statements(ex, sg) -> list:
@@ -229,6 +261,7 @@ def markdown(rep) -> str:
   if meta.get("recon_modes"):
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
+  L += hard_markdown(ex.get("hard"))
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
   if rep["skipped_experiments"]:
@@ -317,6 +350,30 @@ def markdown(rep) -> str:
                f"{_f(_pct(v['critical_rate']['value']))} |")
   L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
   return "\n".join(L)
+
+
+def hard_markdown(table) -> list:
+  """Lines of the hard suite's table (`hard_table`); [] when no campaign was flown."""
+  if not table:
+    return []
+  L = ["## Hard suite: SVR, critical-spec violations, RSR and MD per controller and campaign", "",
+       "Campaign rows pool the campaign's settings (evaluation.campaign_settings); % with 95 % intervals (Wilson for "
+       "rates, Student t for MD); n = missions. No protection's SVR is the share of its missions with any violation; "
+       "the others' is over the missions no protection violated. Attack-free: SVR = any violation.", "",
+       "| campaign | controller | n | SVR % | critical % | RSR % | MD % |", "|---|---|---|---|---|---|---|"]
+
+  def cell(r):
+    if not r or r.get("value") is None:
+      return "n/a"
+    return f"{100 * r['value']:.1f} [{100 * r['ci'][0]:.1f}, {100 * r['ci'][1]:.1f}]"
+
+  for camp, row in table.items():
+    for c, v in row.items():
+      md = v.get("md")
+      md_s = f"{md['mean']:.1f} [{md['ci'][0]:.1f}, {md['ci'][1]:.1f}]" if md else "n/a"
+      L.append(f"| {camp} | {c} | {v['missions']} | {cell(v['svr'])} | {cell(v['critical'])} | {cell(v['rsr'])} | "
+               f"{md_s} |")
+  return L + [""]
 
 
 # ------------------------------------------------------------------------------------------------- figures

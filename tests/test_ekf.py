@@ -363,7 +363,7 @@ def _random_state(ecfg, key):
 def _dense_sequential_fuse(ecfg, s, z, noise, gate, enable):
   """EKF2's textbook form of `_fuse`: dense H, one scalar row at a time, P <- P - k (P h)' (float64, numpy)."""
   from specguard_jax import ekf as ekf_lib
-  pred, H = ekf_lib._linearise(ecfg, s)
+  pred, H = ekf_lib.linearise(ecfg, s)
   H = np.asarray(H, np.float64)
   innov = np.asarray(z - pred, np.float64)
   innov[ekf_lib._MAG_ROW] = (innov[ekf_lib._MAG_ROW] + np.pi) % (2 * np.pi) - np.pi
@@ -373,7 +373,7 @@ def _dense_sequential_fuse(ecfg, s, z, noise, gate, enable):
   ratio = innov ** 2 / (np.asarray(gate, np.float64) ** 2 * S)
   en = np.asarray(enable)
   bad = en & ~(ratio <= 1.0)
-  groups = np.asarray(ekf_lib._GROUP_OF_ROW)
+  groups = np.asarray(ekf_lib.GROUP_OF_ROW)
   accept = en & ~np.isin(groups, groups[bad])
   dx = np.zeros(15)
   for i in np.flatnonzero(accept):
@@ -395,8 +395,8 @@ def test_fusion_equals_textbook_sequential_update(vehicle, unrolled):
   n_rejected = 0
   for seed in range(6):
     s, r = _random_state(ecfg, jax.random.PRNGKey(seed))
-    z, noise, gate = ekf_lib._measurement_rows(ecfg, r)
-    enable = np.array([ekf_lib._row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)])
+    z, noise, gate = ekf_lib.measurement_rows(ecfg, r)
+    enable = np.array([ekf_lib.row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)])
     if seed % 2:  # tight gates: some groups fail theirs
       gate = gate * (0.3 if seed % 4 == 1 else 0.05)
     P_ref, dx_ref, acc_ref = _dense_sequential_fuse(ecfg, s, z, noise, gate, enable)
@@ -418,8 +418,8 @@ def test_observation_jacobian_support():
     for seed in range(4):
       s, _ = _random_state(ecfg, jax.random.PRNGKey(10 + seed))
       s = s.replace(quat=euler_to_quat(jax.random.uniform(jax.random.PRNGKey(seed), (3,), minval=-1.0, maxval=1.0)))
-      H = np.asarray(ekf_lib._linearise(ecfg, s)[1])
-      for i, cols in enumerate(ekf_lib._H_SUPPORT):
+      H = np.asarray(ekf_lib.linearise(ecfg, s)[1])
+      for i, cols in enumerate(ekf_lib.H_SUPPORT):
         off = np.setdiff1d(np.arange(15), cols)
         assert np.all(H[i, off] == 0.0), (ekf_lib._ROWS[i], H[i])
         assert np.any(H[i, list(cols)] != 0.0), ekf_lib._ROWS[i]
@@ -435,7 +435,7 @@ def test_closed_form_jacobian_equals_jacfwd(vehicle):
     s, _ = _random_state(ecfg, jax.random.PRNGKey(20 + seed))
     s = s.replace(quat=euler_to_quat(jax.random.uniform(jax.random.PRNGKey(seed), (3,), minval=-1.5, maxval=1.5)))
     s = s.replace(pos=s.pos.at[2].set((5.0, 0.1, ecfg.flow_min_height)[seed % 3]))
-    pred, H = ekf_lib._linearise(ecfg, s)
+    pred, H = ekf_lib.linearise(ecfg, s)
     ref = jax.jacfwd(lambda dx: ekf_lib._observe_err(ecfg, s, dx))(jnp.zeros(15))
     np.testing.assert_allclose(np.asarray(H), np.asarray(ref), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(pred), np.asarray(ekf_lib._observe_err(ecfg, s, jnp.zeros(15))))
@@ -455,8 +455,8 @@ def test_rejected_nonfinite_reading_does_not_reach_the_state(unrolled):
   from specguard_jax import ekf as ekf_lib
   ecfg = EKFConfig.drone()
   s, r = _random_state(ecfg, jax.random.PRNGKey(3))
-  z, noise, gate = ekf_lib._measurement_rows(ecfg, r)
-  enable = jnp.asarray([ekf_lib._row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)])
+  z, noise, gate = ekf_lib.measurement_rows(ecfg, r)
+  enable = jnp.asarray([ekf_lib.row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)])
   fuse = jax.jit(lambda z, e: ekf_lib._fuse(ecfg, s, z, noise, gate, e, unrolled=unrolled))
   flow = np.array([ekf_lib._ROWS[i].startswith("flow") for i in range(ekf_lib.N_ROWS)])
   bad, _, _, acc = fuse(z.at[flow].set(jnp.nan), enable)
@@ -475,9 +475,9 @@ def test_stale_gps_rows_left_out_equal_the_full_fusion(unrolled):
   for ecfg in (EKFConfig.drone(), EKFConfig.rover()):
     s, r = _random_state(ecfg, jax.random.PRNGKey(5))
     r = r.replace(gps_fresh=jnp.zeros(()))
-    z, noise, gate = ekf_lib._measurement_rows(ecfg, r)
+    z, noise, gate = ekf_lib.measurement_rows(ecfg, r)
     gps_rows = np.array([n.startswith("gps") for n in ekf_lib._ROWS])
-    enable = jnp.asarray([ekf_lib._row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)]) & ~gps_rows
+    enable = jnp.asarray([ekf_lib.row_used(ecfg, i) for i in range(ekf_lib.N_ROWS)]) & ~gps_rows
     fuse = jax.jit(lambda stale: ekf_lib._fuse(ecfg, s, z, noise, gate, enable, unrolled=unrolled, stale=stale),
                    static_argnums=0)
     (a, _, ra, acc_a), (b, _, rb, acc_b) = fuse(()), fuse(("gps",))

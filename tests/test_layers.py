@@ -144,3 +144,39 @@ def test_no_private_env_members_outside_envs():
           and isinstance(node.value, ast.Name) and "env" in node.value.id.lower()):
         bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value.id}.{node.attr}")
   assert not bad, "private env members used outside envs/:\n" + "\n".join(bad)
+
+
+def _module_aliases(tree, mod: str, modules: dict) -> dict:
+  """{local name: library module} bound by the import statements of `tree` (any depth)."""
+  out = {}
+  for node in ast.walk(tree):
+    if isinstance(node, ast.Import):
+      for a in node.names:
+        if a.asname and _owner(a.name, modules) == a.name:
+          out[a.asname] = a.name
+        elif not a.asname and a.name.split(".")[0] in PACKAGES:
+          out[a.name.split(".")[0]] = a.name.split(".")[0]
+    elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+      for a in node.names:
+        full = f"{node.module}.{a.name}"
+        if full in modules:
+          out[a.asname or a.name] = full
+  return out
+
+
+def test_no_private_members_of_other_modules():
+  """Library code, tools, benches and experiments call other modules through their public names only: no
+  `ekf_lib._fuse`, `dyn._ridge`, ... (tests may reach into a module's internals)."""
+  modules = _modules()
+  files = dict(modules)
+  for extra in ("bench", "tools", "experiments"):
+    files.update({f"{extra}.{p.stem}": p for p in sorted((ROOT / extra).glob("*.py"))})
+  bad = []
+  for mod, path in files.items():
+    tree = ast.parse(path.read_text(), str(path))
+    aliases = _module_aliases(tree, mod, modules)
+    for node in ast.walk(tree):
+      if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+          and isinstance(node.value, ast.Name) and node.value.id in aliases and aliases[node.value.id] != mod):
+        bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value.id}.{node.attr}")
+  assert not bad, "private members of other modules used:\n" + "\n".join(bad)

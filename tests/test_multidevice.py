@@ -282,8 +282,9 @@ def test_two_processes_with_jax_distributed_train_like_one(runs):
   assert json.loads((mh / "run" / "summary.json").read_text())["processes"] == 2
 
 
-# The env step with the lanes EKF kernel, split over 2 devices by shard_map (iteration.group_step), against the plain
-# vmap on one device. The kernel needs a Hopper GPU, so its call is stood in for by its plain-JAX body (the same
+# The env step with the lanes EKF kernel, split over 2 devices by shard_map (iteration.group_step), against the XLA
+# env's plain vmap on one device (the kernel's one-device batch is read from a trace: its compile would double the
+# test's time). The kernel needs a Hopper GPU, so its call is stood in for by its plain-JAX body (the same
 # arithmetic); what this checks is the batch each device hands the kernel and the packed layout of P on every device.
 KERNEL = textwrap.dedent("""
   import json
@@ -310,26 +311,31 @@ KERNEL = textwrap.dedent("""
 
   ekf_lanes._lanes_call = fake_lanes_call
   batched = AutoReset(VmapWrapper(env), refresh_in_step=False)
+  # The reference: the same envs with the XLA filter, stepped on one device (P square there).
+  ref = AutoReset(VmapWrapper(envs.make("drone", control_mode="override", worlds=("suburban_residential",))),
+                  refresh_in_step=False)
   G, Bg = 2, 3
-  state0 = jax.jit(jax.vmap(batched.reset))(jax.random.split(jax.random.PRNGKey(0), G * Bg).reshape(G, Bg, -1))
+  keys = jax.random.split(jax.random.PRNGKey(0), G * Bg).reshape(G, Bg, -1)
+  state0, ref0 = jax.jit(jax.vmap(batched.reset))(keys), jax.jit(jax.vmap(ref.reset))(keys)
   act = jnp.full((G, Bg, 3), 0.3)
   mesh = distributed.make_mesh(2)
   distributed.use_gspmd_for_shard_map(mesh)   # as iteration.make_phase does with the kernel on several devices
   roll = lambda step: jax.jit(lambda s: jax.lax.scan(lambda s, _: (step(s, act), None), s, None, length=3)[0])
-  one = roll(iteration.group_step(batched, None))(state0)
+  one = roll(iteration.group_step(ref, None))(ref0)
+  jax.make_jaxpr(iteration.group_step(batched, None))(state0, act)   # traced only: the batch one device hands it
   batch_one, seen[:] = seen[-1], []
   sharded = iteration.group_step(batched, mesh, per_device=True)
   s2 = jax.device_put(state0, NamedSharding(mesh, PartitionSpec(distributed.AXIS)))
   two = roll(sharded)(s2)
   batch_two = seen[-1]
-  P1, P2 = one.info["sim"]["ekf"].P, two.info["sim"]["ekf"].P
+  P1, P2 = one.info["sim"]["ekf"].P, ekf_lib.as_square(two.info["sim"]["ekf"].P)
   jaxpr = str(jax.make_jaxpr(sharded)(state0, act))
   plain = str(jax.make_jaxpr(iteration.group_step(batched, mesh))(state0, act))   # not per_device: SPMD's vmap
   res = {"kernel_batch": [batch_one, batch_two], "shard_map": "shard_map" in jaxpr,
          "plain_shard_map": "shard_map" in plain, "shardy": bool(getattr(jax.config, "jax_use_shardy_partitioner", 0)),
-         "P_shape": list(P2.shape), "obs_shards": [list(x.data.shape) for x in two.obs.addressable_shards],
-         "max_obs_diff": float(jnp.max(jnp.abs(one.obs - two.obs))), "max_P_diff": float(jnp.max(jnp.abs(P1 - P2))),
-         "moved": float(jnp.max(jnp.abs(one.obs - state0.obs)))}
+         "P_shape": list(two.info["sim"]["ekf"].P.shape), "obs_shards": [list(x.data.shape) for x in two.obs.addressable_shards],
+         "max_obs_diff": float(jnp.max(jnp.abs(one.obs - two.obs))), "max_P_rel": float(jnp.max(jnp.abs(P1 - P2)) / jnp.max(jnp.abs(P1))),
+         "moved": float(jnp.max(jnp.abs(one.obs - ref0.obs)))}
   print("RESULT " + json.dumps(res))
 """)
 
@@ -343,7 +349,7 @@ def test_lanes_ekf_kernel_steps_the_envs_per_device():
   assert r["P_shape"] == [2, 3, 121]                   # the kernel's packed layout of P, kept in the env state
   assert r["obs_shards"] == [[1, 3, 24]] * 2           # one env group per device
   assert r["moved"] > 1e-3
-  assert r["max_obs_diff"] < 1e-5 and r["max_P_diff"] < 1e-6, r
+  assert r["max_obs_diff"] < 1e-4 and r["max_P_rel"] < 1e-4, r   # float32 rounding of the two filters
 
 
 # On a host with 2 GPUs: the three training programs that a shard_map had made XLA segfault at compile time there

@@ -26,6 +26,8 @@ from specguard_jax.types import SENSOR_NAMES, SensorReadings  # noqa: F401 (re-e
 
 OVERT, STEALTHY = 0, 1
 PROFILES = ("overt", "stealthy")
+ONSET_MODES = ("random", "given")
+UNTIL_END = 1e9   # duration (s) of an attack that lasts until the episode ends
 N_SENSORS = len(SENSOR_NAMES)
 BIAS_DIMS = {"gps": 3, "gyro": 3, "accel": 3, "mag": 1, "baro": 1, "flow": 2}
 _BARO_M_PER_KPA = 1000.0 / (1.225 * 9.81)
@@ -115,6 +117,12 @@ class AttackConfig:
   targets at once (2 for the paper's GPS + gyroscope multi-sensor experiment).  p_attack: probability an episode is
   attacked.  onset_frac: onset as a fraction of the mission's nominal duration.  duration_s: attack length.
   ramp_s: stealthy ramp time.  scale: multiplies BIAS_RANGES (1.0 = the paper's Table 3).
+  until_end: the attack lasts until the episode ends (duration UNTIL_END) instead of duration_s.
+  onset: 'random' (onset_frac) | 'given' (the caller computes the onset per episode, e.g. a lead time before a hazard
+  of the mission in its world, and hands it to `sample_attack`; attack scheduling knows no missions or worlds).
+  ramp_rate: per-sensor stealthy ramp rates ((sensor, |db/dt| in the sensor's bias units per s), ...), e.g. designed
+  against a detector (calibration.stealthy.design_rates): a sensor listed ramps at its rate (ramp time |b| / rate)
+  instead of over ramp_s.
   """
   sensors: tuple = SENSOR_NAMES
   profiles: tuple = PROFILES
@@ -124,6 +132,9 @@ class AttackConfig:
   duration_s: tuple = (15.0, 40.0)
   ramp_s: tuple = (10.0, 30.0)
   scale: float = 1.0
+  until_end: bool = False
+  onset: str = "random"
+  ramp_rate: tuple = ()
 
   def __post_init__(self):
     bad = [x for x in self.sensors if x not in SENSOR_NAMES]
@@ -136,10 +147,24 @@ class AttackConfig:
       raise ValueError(f"n_sensors must be in 1..{len(self.sensors)}")
     if not 0.0 <= self.p_attack <= 1.0:
       raise ValueError("p_attack must be in [0, 1]")
+    if self.onset not in ONSET_MODES:
+      raise ValueError(f"unknown onset mode {self.onset!r}; choose from {ONSET_MODES}")
+    bad = [x for x, r in self.ramp_rate if x not in SENSOR_NAMES or not r > 0]
+    if bad:
+      raise ValueError(f"ramp_rate needs known sensors and rates > 0, got {bad}")
+
+  def rates(self) -> np.ndarray:
+    """[6] stealthy ramp rate per sensor (SENSOR_NAMES order; 0 = ramp over ramp_s)."""
+    d = dict(self.ramp_rate)
+    return np.asarray([float(d.get(n, 0.0)) for n in SENSOR_NAMES], np.float32)
 
 
-def sample_attack(cfg: AttackConfig, rng, nominal_duration) -> AttackSchedule:
-  """Draw one episode's attack: sensors, profile, bias (uniform magnitude in range, random direction), timing."""
+def sample_attack(cfg: AttackConfig, rng, nominal_duration, onset=None) -> AttackSchedule:
+  """Draw one episode's attack: sensors, profile, bias (uniform magnitude in range, random direction), timing.
+
+  nominal_duration: [] s, the mission's.  onset: [] s, the onset when cfg.onset == 'given' (required then, ignored
+  otherwise). The random draws are the same whatever the timing options, so campaigns that differ only in timing
+  attack the same sensors with the same biases."""
   ks = jax.random.split(rng, 8)
   allowed = jnp.asarray([float(n in cfg.sensors) for n in SENSOR_NAMES])
   # n distinct sensors among the allowed ones: top-n of random keys.
@@ -157,10 +182,20 @@ def sample_attack(cfg: AttackConfig, rng, nominal_duration) -> AttackSchedule:
   bias = d * mag[:, None] * mask[:, None]
   profiles = jnp.asarray([PROFILES.index(p) for p in cfg.profiles], jnp.int32)
   profile = profiles[jax.random.randint(ks[3], (), 0, len(cfg.profiles))]
-  onset = nominal_duration * jax.random.uniform(ks[4], (), minval=cfg.onset_frac[0], maxval=cfg.onset_frac[1])
+  frac_onset = nominal_duration * jax.random.uniform(ks[4], (), minval=cfg.onset_frac[0], maxval=cfg.onset_frac[1])
+  if cfg.onset == "given":
+    if onset is None:
+      raise ValueError("AttackConfig.onset == 'given' needs the onset (s) passed to sample_attack")
+    frac_onset = jnp.maximum(jnp.asarray(onset, jnp.float32), 0.0)
   duration = jax.random.uniform(ks[5], (), minval=cfg.duration_s[0], maxval=cfg.duration_s[1])
+  if cfg.until_end:
+    duration = jnp.full((), UNTIL_END, jnp.float32)
   ramp = jax.random.uniform(ks[6], (), minval=cfg.ramp_s[0], maxval=cfg.ramp_s[1])
+  if cfg.ramp_rate:   # the designed rate of the (first) attacked sensor that has one
+    rates = jnp.asarray(cfg.rates()) * mask
+    k = jnp.argmax(rates > 0)
+    ramp = jnp.where(rates[k] > 0, mag[k] / jnp.maximum(rates[k], 1e-9), ramp)
   attacked = jax.random.uniform(ks[7]) < cfg.p_attack
-  s = AttackSchedule(mask=mask, bias=bias, onset=onset, duration=duration, ramp_time=ramp,
+  s = AttackSchedule(mask=mask, bias=bias, onset=frac_onset, duration=duration, ramp_time=ramp,
                      profile=profile.astype(jnp.int32))
   return jax.tree.map(lambda a, b: jnp.where(attacked, a, b), s, no_attack())

@@ -123,7 +123,7 @@ def fit_dae(cfg: dae_lib.DAEConfig, x, y, w, key, n_train: int):
   wt = jnp.sum(w[:n_train], 1)[..., None]          # [B, T, 1] how often truth (b, t) is a target
   mean = jnp.sum(yt * wt, (0, 1)) / jnp.sum(wf)
   std = jnp.sqrt(jnp.sum((yt - mean) ** 2 * wt, (0, 1)) / jnp.sum(wf)) + 1e-3
-  net = dae_lib._DAE(cfg.hidden, cfg.bottleneck, n)
+  net = dae_lib.DAENet(cfg.hidden, cfg.bottleneck, n)
   k_init, k_fit = jax.random.split(key)
   p0 = net.init(k_init, jnp.zeros((1, n)))
   xf = jnp.nan_to_num(x[:n_train].reshape(-1, n))

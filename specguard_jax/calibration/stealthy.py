@@ -250,3 +250,36 @@ def design_stealthy(env, cfg, sensor: str, bias, hidden_s: float, onset: float, 
   return StealthyDesign(schedule=schedule, sensor=sensor, bias=bias, rate=rate, ramp_time=mag / rate,
                         hidden_s=float(hidden_s), feasible=feasible, rates=all_rates, hidden=all_hidden,
                         required=float(required), dropped=np.asarray(dropped))
+
+
+# Design biases per sensor for `design_rates` (the sensor's units; the ramp-rate limit depends on the direction more
+# than on the magnitude: rate-limited GPS not at all, the level-limited sensors once |b| exceeds the detectable level).
+DESIGN_BIAS = {
+    "gps": (30.0, 0.0, 0.0),      # m east
+    "gyro": (0.0, 0.0, 0.5),      # rad/s about z
+    "accel": (0.0, 0.0, -2.0),    # m/s^2 down
+    "mag": (float(np.pi / 2),),   # rad
+    "baro": (-8.0,),              # m (the paper's "gradually decreasing")
+    "flow": (1.0, 0.0),           # rad/s about x
+}
+
+
+def design_rates(env, sensors, hidden_s: float = 10.0, onset: float = 12.0, *, cfg=None, n_rates: int = 6,
+                 refine: int = 1, n_missions: int = 4, margin: float = 0.2, seed: int = 0) -> dict:
+  """Designed stealthy ramp rate per sensor against the env's calibrated detector: {sensor: {rate, feasible,
+  ramp_time, hidden_s}} (rate in the sensor's bias units per s, nan when no rate in RATE_RANGES stays hidden).
+
+  env: the vehicle's env with its detector (envs.make(..., detector='residual')); cfg: the detector (default
+  env.det_cfg, the vehicle's calibrated preset). One `design_stealthy` of DESIGN_BIAS per sensor, all sharing one
+  compiled simulation. The residual CUSUM is replayed; the GPS position cross-check (detector.position_check) is
+  not, so the GPS rate is the CUSUM's limit only. An evaluation campaign (evaluation.campaign_settings 'designed')
+  ramps each mission's own bias at the sensor's rate."""
+  cfg = cfg if cfg is not None else env.det_cfg
+  if cfg is None:
+    raise ValueError("design_rates needs a detector: envs.make(..., detector='residual') or cfg=")
+  out = {}
+  for s in sensors:
+    d = design_stealthy(env, cfg, s, DESIGN_BIAS[s], hidden_s, onset, n_rates=n_rates, refine=refine,
+                        n_missions=n_missions, margin=margin, seed=seed, batch=(n_rates + 1) * n_missions)
+    out[s] = {"rate": d.rate, "feasible": bool(d.feasible), "ramp_time": d.ramp_time, "hidden_s": float(hidden_s)}
+  return out

@@ -17,11 +17,21 @@ worlds, flown in urban_high_rise) and/or urban=DIR (the reverse) are given; the 
 the binary-reward ablation when --runs binary=DIR; SpecGuard-PC when --runs specguard_pc=DIR (or --run is a PC run);
 SpecGuard trained without reconstruction when --runs specguard_no_recon=DIR (else the run's policy with
 reconstruction switched off).
+
+--campaigns long,hazard,designed,multi adds attack campaigns (specguard_jax.evaluation.campaign_settings) to the
+settings, named '<campaign>/<sensors>/<profile>'. The designed campaign's ramp rates come from --designed-rates, else
+they are designed against the detector (calibration.stealthy.design_rates, a few CPU minutes) and saved to
+<out>/designed_rates.json, which a later run with the same --out reuses.
+
+--suite hard flies the campaigns benchmark: attack-free + every campaign (or --campaigns), on all worlds (or
+--worlds), with no protection, DeLorean, the fallback and the baselines that are registered, and SpecGuard when --run
+is given; report.md opens with SVR, critical-spec violations, RSR and MD per controller and campaign.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import os
 import subprocess
@@ -32,6 +42,11 @@ from specguard_jax.types import RECON_MODES, VEHICLES
 
 RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "specguard_no_recon", "suburban", "urban", "rover")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
+# Registered controllers the hard suite leaves out (ablations that need their own training runs).
+HARD_SKIP = ("specguard_no_recon", "specguard_binary")
+# Controllers the hard suite flies under another name with extra EnvConfig overrides:
+# (report name, registered controller, ((EnvConfig field, value), ...)); the registered one is then not flown itself.
+HARD_VARIANTS = ()
 UNSEEN = {"suburban": ("suburban_to_urban", ("urban_high_rise",)),
           "urban": ("urban_to_suburban", ("suburban_residential",))}
 
@@ -55,7 +70,13 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--worlds", help="comma-separated evaluation worlds (default: the run's training worlds)")
   p.add_argument("--vehicle", choices=VEHICLES, help="default: the run's vehicle, else drone")
   p.add_argument("--seed", type=int, default=10_000, help="mission/attack/noise seed (unseen by training)")
-  p.add_argument("--suite", choices=("paper",), help="run every experiment of the paper our code can run")
+  p.add_argument("--suite", choices=("paper", "hard"),
+                 help="paper: every experiment of the paper our code can run; hard: the attack-campaign benchmark")
+  p.add_argument("--campaigns", help="comma-separated attack campaigns: long,hazard,designed,multi (default: none; "
+                                     "--suite hard: all)")
+  p.add_argument("--designed-rates", metavar="FILE|SENSOR=RATE,...",
+                 help="designed campaign ramp rates (bias units / s): a designed_rates.json or gps=1.1,baro=0.25,...")
+  p.add_argument("--hazard-lead", default="2,5", metavar="LO,HI", help="hazard campaign lead time range (s)")
   p.add_argument("--recon", choices=RECON_MODES,
                  help="state reconstruction mode of the controllers that reconstruct and do not fix one themselves "
                       "(delorean, specguard_*; EnvConfig.recon_mode): fused (default) or paper")
@@ -145,7 +166,8 @@ def plan(args) -> dict:
     except C.NotAvailable as e:
       raise ValueError(f"--run: {e}") from None
   vehicle = args.vehicle or (run_cfg.vehicle if run_cfg else "drone")
-  worlds = _csv(args.worlds) or (tuple(run_cfg.env.worlds) if run_cfg else C.DEFAULT_WORLDS)
+  default_worlds = worlds_lib.PRESET_NAMES if args.suite == "hard" else C.DEFAULT_WORLDS
+  worlds = _csv(args.worlds) or (tuple(run_cfg.env.worlds) if run_cfg and args.suite != "hard" else default_worlds)
   bad = [w for w in worlds if w not in worlds_lib.PRESETS]
   if bad:
     raise ValueError(f"unknown world(s) {', '.join(bad)}; choose from {', '.join(worlds_lib.PRESETS)}")
@@ -173,6 +195,21 @@ def plan(args) -> dict:
       raise ValueError(f"--mission-s needs 0 < LO <= HI, got {args.mission_s!r}")
     mission_s = (lo, hi)
 
+  campaigns = _csv(args.campaigns) or (E.CAMPAIGNS if args.suite == "hard" else ())
+  bad = [c for c in campaigns if c not in E.CAMPAIGNS]
+  if bad:
+    raise ValueError(f"unknown campaign(s) {', '.join(bad)}; choose from {', '.join(E.CAMPAIGNS)}")
+  try:
+    lead = tuple(float(x) for x in args.hazard_lead.split(","))
+  except ValueError:
+    raise ValueError(f"--hazard-lead takes LO,HI seconds, got {args.hazard_lead!r}") from None
+  if len(lead) != 2 or not 0 <= lead[0] <= lead[1]:
+    raise ValueError(f"--hazard-lead needs 0 <= LO <= HI, got {args.hazard_lead!r}")
+  designed_rates = _parse_rates(args.designed_rates, veh_sensors) if args.designed_rates else None
+  single = tuple(s for s in sensors if "+" not in s)
+  camp_settings = E.campaign_settings(tuple(c for c in campaigns if c != "designed"), single, profiles,
+                                      hazard_lead_s=lead)
+
   def settings_for(sens, multi=False):
     out = [E.setting(None)]
     out += [E.setting(tuple(s.split("+")), p) for s in sens for p in profiles]
@@ -180,9 +217,18 @@ def plan(args) -> dict:
       out += [E.setting(("gps", "gyro"), p) for p in profiles if "gps+gyro" not in sens]
     return tuple(out)
 
-  names = list(_csv(args.controllers)) or (C.available() if args.suite else list(DEFAULT_CONTROLLERS))
+  variants = {}
+  if args.suite == "hard" and not args.controllers:
+    names = [c for c in C.available() if c not in HARD_SKIP
+             and not (c.startswith("specguard") and not (args.run or runs))]
+    for vname, base_name, over in HARD_VARIANTS:
+      if base_name in names:
+        variants[vname] = (base_name, tuple(over))
+    names = [c for c in names if c not in {b for b, _ in variants.values()}] + list(variants)
+  else:
+    names = list(_csv(args.controllers)) or (C.available() if args.suite else list(DEFAULT_CONTROLLERS))
   known = C.available()
-  bad = [c for c in names if c not in known]
+  bad = [c for c in names if c not in known and c not in variants]
   if bad:
     raise ValueError(f"unknown controller(s) {', '.join(bad)}; choose from {', '.join(known)}")
   if "no_protection" not in names:
@@ -191,10 +237,15 @@ def plan(args) -> dict:
   out_dir = args.out or (os.path.join(args.run, "eval") if args.run else os.path.join("runs", "eval"))
   ctx = C.BuildContext(vehicle=vehicle, run_dir=args.run, cache_dir=os.path.join(out_dir, "baselines"),
                        seed=args.seed, worlds=worlds, train_budget=budget, runs=tuple(sorted(runs.items())))
-  groups = {"main": {"vehicle": vehicle, "worlds": worlds, "settings": settings_for(sensors, multi=bool(args.suite)),
-                     "controllers": names, "ctx": ctx}}
+  if args.suite == "hard":
+    main_settings = (E.setting(None),) + camp_settings
+  else:
+    main_settings = settings_for(sensors, multi=bool(args.suite)) + camp_settings
+  names = [("variant", c) + variants[c] if c in variants else c for c in names]
+  groups = {"main": {"vehicle": vehicle, "worlds": worlds, "settings": main_settings, "controllers": names,
+                     "ctx": ctx, "designed": single if "designed" in campaigns else ()}}
   skipped = {}
-  if args.suite:
+  if args.suite == "paper":
     single = tuple(s for s in sensors if "+" not in s)
     for role, (gname, gworlds) in UNSEEN.items():
       if role in runs:
@@ -213,7 +264,72 @@ def plan(args) -> dict:
       else:
         skipped["rover"] = "no rover run given (--runs rover=DIR)"
   return {"groups": groups, "skipped": skipped, "out": out_dir, "mission_s": mission_s, "runs": runs,
-          "profiles": profiles}
+          "profiles": profiles, "campaigns": campaigns, "designed_rates": designed_rates, "hazard_lead_s": lead}
+
+
+def _parse_rates(spec: str, sensors) -> dict:
+  """--designed-rates: a JSON file ({sensor: rate} or design_rates' {sensor: {rate, feasible, ...}}) or
+  SENSOR=RATE,... -> {sensor: rate > 0} (infeasible or non-finite entries dropped)."""
+  import json
+  import math
+  if os.path.isfile(spec):
+    try:
+      with open(spec) as f:
+        raw = json.load(f)
+    except (OSError, ValueError) as e:
+      raise ValueError(f"--designed-rates {spec}: {' '.join(str(e).split())}") from None
+    raw = {k: ((v.get("rate") if v.get("feasible", True) else None) if isinstance(v, dict) else v)
+           for k, v in raw.items()}
+  else:
+    raw = {}
+    for item in _csv(spec):
+      k, sep, v = item.partition("=")
+      if not sep:
+        raise ValueError(f"--designed-rates takes a file or SENSOR=RATE,..., got {item!r}")
+      raw[k] = v
+  out = {}
+  for k, v in raw.items():
+    if k not in sensors:
+      raise ValueError(f"--designed-rates: unknown sensor {k!r}; choose from {', '.join(sensors)}")
+    try:
+      v = float(v) if v is not None else math.nan
+    except (TypeError, ValueError):
+      raise ValueError(f"--designed-rates: bad rate {v!r} for {k}") from None
+    if math.isfinite(v) and v > 0:
+      out[k] = v
+  return out
+
+
+def designed_settings(p: dict, group: dict, mission, max_s: float) -> tuple:
+  """The designed campaign's settings of a group: rates from --designed-rates, else from <out>/designed_rates.json
+  (a previous run's), designing the sensors it lacks against the group's detector (calibration.stealthy.design_rates)
+  and saving them there. Sensors without a feasible rate get no designed setting."""
+  import json
+
+  from specguard_jax import attacks as attacks_lib
+  from specguard_jax import evaluation as E
+  sensors = group["designed"]
+  rates = p["designed_rates"]
+  if rates is None:
+    path = os.path.join(p["out"], "designed_rates.json")
+    saved = {}
+    if os.path.isfile(path):
+      with open(path) as f:
+        saved = json.load(f)
+    todo = [x for x in sensors if x not in saved]
+    if todo:
+      from specguard_jax.calibration import stealthy
+      base = {"worlds": tuple(group["worlds"]), "max_episode_s": float(max_s), "detector": "residual"}
+      if mission is not None:
+        base["mission"] = mission
+      design = stealthy.design_rates(E.make_env(group["vehicle"], **base), todo)
+      saved.update({k: {kk: (vv if vv == vv else None) for kk, vv in v.items()} for k, v in design.items()})
+      os.makedirs(p["out"], exist_ok=True)
+      with open(path, "w") as f:
+        json.dump(saved, f, indent=1)
+    rates = _parse_rates(path, attacks_lib.SENSOR_NAMES)
+  rates = {k: v for k, v in rates.items() if k in sensors}
+  return E.campaign_settings(("designed",), sensors, designed_rates=rates)
 
 
 def _backend() -> str:
@@ -251,14 +367,22 @@ def main(argv=None) -> int:
     if p["mission_s"]:
       mk = MissionConfig.drone if g["vehicle"] == "drone" else MissionConfig.rover
       base["mission"] = mk(min_duration_s=p["mission_s"][0], max_duration_s=p["mission_s"][1])
+    if g.get("designed"):
+      bar.show(f"{gname}: designing stealthy ramps")
+      g["settings"] = tuple(g["settings"]) + designed_settings(p, g, base.get("mission"), args.max_s)
     results["groups"][gname] = {"vehicle": g["vehicle"], "worlds": list(g["worlds"]),
                                 "settings": [s.name for s in g["settings"]], "controllers": {}}
     for c in g["controllers"]:
-      label = c if isinstance(c, str) else c[0]
+      label = c if isinstance(c, str) else (c[1] if c[0] == "variant" else c[0])
       bar.show(f"{gname}: building {label}")
       try:
         if isinstance(c, str):
           ctrl = C.build(c, g["ctx"])
+        elif c[0] == "variant":   # ("variant", report name, registered controller, extra env overrides)
+          ctrl = C.build(c[2], g["ctx"])
+          over = dict(ctrl.env_overrides, **dict(c[3]))
+          ctrl = dataclasses.replace(ctrl, name=c[1], env_overrides=tuple(over.items()),
+                                     description=f"{ctrl.description} ({', '.join(f'{k}={v}' for k, v in c[3])})")
         else:
           cfg = C.load_run_config(c[1])
           ctrl = C.specguard_from_run(f"specguard_{cfg.variant}", c[1])
@@ -305,6 +429,9 @@ def main(argv=None) -> int:
           "device": str(jax.devices()[0]), "git_commit": _git_commit(), "seed": args.seed,
           "missions_per_setting": missions, "max_s": args.max_s, "mission_s": p["mission_s"], "run": args.run,
           "runs": p["runs"], "suite": args.suite, "profiles": list(p["profiles"]),
+          "campaigns": list(p["campaigns"]), "hazard_lead_s": list(p["hazard_lead_s"]),
+          "designed_rates": {x: r for g in p["groups"].values() for st in g["settings"]
+                             if E.campaign_of(st.name) == "designed" for x, r in st.attack.ramp_rate},
           "simulator": "specguard-jax MJX simulator (not AirSim)", "recon": args.recon or "fused",
           "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
                           for c, v in grp["controllers"].items()}}

@@ -34,7 +34,7 @@ class DAEConfig:
   lr: float = 1e-3
 
 
-class _DAE(nn.Module):
+class DAENet(nn.Module):
   hidden: tuple
   bottleneck: int
   n_out: int
@@ -60,7 +60,7 @@ class DAEParams:
 
 def dae_apply(cfg: DAEConfig, p: DAEParams, x):
   """Denoise x [..., n] -> [..., n]."""
-  net = _DAE(cfg.hidden, cfg.bottleneck, x.shape[-1])
+  net = DAENet(cfg.hidden, cfg.bottleneck, x.shape[-1])
   z = (x - p.mean) / p.std
   return net.apply(p.net, z) * p.std + p.mean
 
@@ -70,7 +70,7 @@ def train_dae(cfg: DAEConfig, x_noisy, x_clean, key) -> tuple[DAEParams, jax.Arr
   """Fit on pairs x_noisy, x_clean [N, n]. Returns (params, final training loss (standardised MSE))."""
   mean = jnp.mean(x_clean, 0)
   std = jnp.std(x_clean, 0) + 1e-3
-  net = _DAE(cfg.hidden, cfg.bottleneck, x_clean.shape[-1])
+  net = DAENet(cfg.hidden, cfg.bottleneck, x_clean.shape[-1])
   k_init, k_batch = jax.random.split(key)
   params = net.init(k_init, jnp.zeros((1, x_clean.shape[-1])))
   opt = optax.adam(cfg.lr)
@@ -114,7 +114,7 @@ class DAEEstimator(Estimator):
 
 
 def _template(cfg: DAEConfig):
-  net = _DAE(cfg.hidden, cfg.bottleneck, recon.N_INPUT)
+  net = DAENet(cfg.hidden, cfg.bottleneck, recon.N_INPUT)
   p = net.init(jax.random.PRNGKey(0), jnp.zeros((1, recon.N_INPUT)))
   return DAEParams(net=p, mean=jnp.zeros(recon.N_INPUT), std=jnp.ones(recon.N_INPUT))
 

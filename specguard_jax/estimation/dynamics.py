@@ -23,7 +23,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax.sensors import GRAVITY
 
@@ -79,7 +78,7 @@ def step(p: DynParams, s: DynState, u, dt, specific_force=None) -> DynState:
   if specific_force is not None:
     acc = math3d.matvec(math3d.quat_to_rot(s.quat), specific_force) + G
   rate = s.rate + alpha * dt
-  quat = ekf_lib._normalize_quat(math3d.quat_mul(s.quat, ekf_lib._rotvec_to_quat(0.5 * (s.rate + rate) * dt)))
+  quat = math3d.normalize_quat(math3d.quat_mul(s.quat, math3d.rotvec_to_quat(0.5 * (s.rate + rate) * dt)))
   vel = s.vel + acc * dt
   pos = s.pos + 0.5 * (s.vel + vel) * dt
   return DynState(pos=pos, vel=vel, quat=quat, rate=rate)
@@ -103,7 +102,7 @@ def states_from_trace(tr, source: str = "ekf") -> DynState:
   return DynState(pos=e.pos, vel=e.vel, quat=e.quat, rate=rd.gyro - e.gyro_bias)
 
 
-def _ridge(phi, y, w, lam):
+def ridge(phi, y, w, lam):
   """Weighted ridge solve: phi [N, F], y [N, 3], w [N] 0/1 -> weights [3, F] and residual RMS [3]."""
   scale = jnp.sqrt(jnp.sum(w[:, None] * phi ** 2, 0) / jnp.maximum(jnp.sum(w), 1.0)) + 1e-6
   x = phi / scale
@@ -130,8 +129,8 @@ def _fit(pos, vel, quat, rate, controls, f_meas, valid, dt, lam):
   y_lin = f_meas[:, 1:].reshape(-1, 3)
   y_ang = ((rate[:, 1:] - rate[:, :-1]) / dt).reshape(-1, 3)
   w = (valid[:, 1:] & valid[:, :-1]).reshape(-1).astype(jnp.float32)
-  w_lin, rms_lin = _ridge(phi_lin, y_lin, w, lam)
-  w_ang, rms_ang = _ridge(phi_ang, y_ang, w, lam)
+  w_lin, rms_lin = ridge(phi_lin, y_lin, w, lam)
+  w_ang, rms_ang = ridge(phi_ang, y_ang, w, lam)
   del flat, u_all
   return DynParams(w_lin=w_lin, w_ang=w_ang, rms_lin=rms_lin, rms_ang=rms_ang)
 

@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from specguard_jax import ekf as ekf_lib
 from specguard_jax import math3d
 from specguard_jax.estimation import checkpointer as ck
 from specguard_jax.estimation import dynamics as dyn
@@ -128,7 +127,7 @@ def fit_force_model(tr, vehicle: str, lam: float = 1e-3, heldout: int = 0):
   ws, rms = [], []
   for ax in range(3):
     m = jnp.asarray(mask[ax], jnp.float32)
-    wa, ra = dyn._ridge(flat(phi[:n_fit]) * m, flat(y[:n_fit, ..., ax:ax + 1]), flat(w[:n_fit]), lam)
+    wa, ra = dyn.ridge(flat(phi[:n_fit]) * m, flat(y[:n_fit, ..., ax:ax + 1]), flat(w[:n_fit]), lam)
     ws.append(wa[0] * mask[ax])
     rms.append(ra[0])
   fm = ForceModel(w=jnp.stack(ws), rms=jnp.stack(rms))
@@ -153,7 +152,7 @@ def _step(params, fm, s: dyn.DynState, u, bias, dt) -> dyn.DynState:
   """One tick of dt (s): semi-implicit Euler, exponential map on the attitude (as estimation.dynamics.step)."""
   acc, alpha = _accel(params, fm, s, u, bias)
   rate = s.rate + alpha * dt
-  quat = ekf_lib._normalize_quat(math3d.quat_mul(s.quat, ekf_lib._rotvec_to_quat(0.5 * (s.rate + rate) * dt)))
+  quat = math3d.normalize_quat(math3d.quat_mul(s.quat, math3d.rotvec_to_quat(0.5 * (s.rate + rate) * dt)))
   vel = s.vel + acc * dt
   return dyn.DynState(pos=s.pos + 0.5 * (s.vel + vel) * dt, vel=vel, quat=quat, rate=rate)
 

@@ -5,6 +5,10 @@ Names are the paper's PX4 / ArduPilot names. Names the paper uses that PX4/ArduP
 MPC_XY_VEL_MIN, NAV_MC_ALT_RADIUS, CRUISE_SPEED_MIN/MAX) are SpecGuard's own; names starting with `SG_` are ours
 (quantities the paper leaves implicit). All values are SI (m, m/s, s); ArduPilot's WPNAV_RADIUS is stored in cm in
 .parm files and is converted to m on load.
+
+Every route that sets a known parameter (overrides, `with_params`, spec files, parameter files) checks it against its
+ParamDef range, so PX4's / ArduPilot's "disabled" values (-1) are refused the same way everywhere, and `CONSTRAINTS`
+(a minimum below its maximum) are checked on every table (`specs.table.validate`).
 """
 
 from __future__ import annotations
@@ -12,9 +16,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from typing import Dict, Iterable, Mapping, Optional
+import re
+import warnings
+from typing import Dict, Iterable, Mapping, Optional, Union
 
-from specguard_jax.specs.errors import SpecError
+from specguard_jax.specs.errors import ParamFileWarning, SpecError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +69,31 @@ ROVER_PARAMS = _defs(
     ("SG_ACCEL_TIME", 3.0, "s", "S7 grace: the min speed must be met within this time of any cruise instant"),
 )
 
+CONSTRAINTS = (
+    # (lower, upper): a table (or a file) that sets both must have lower < upper, else no trace satisfies both specs.
+    ("MPC_XY_VEL_MIN", "MPC_XY_VEL_MAX"),
+    ("NAV_MIN_LTR_ALT", "MIS_TAKEOFF_ALT"),
+    ("CRUISE_SPEED_MIN", "CRUISE_SPEED_MAX"),
+)
+
+
+def param_def(name: str) -> Optional[ParamDef]:
+  """The ParamDef of a drone or rover spec parameter (the names both tables share have the same range), else None."""
+  return DRONE_PARAMS.get(name) or ROVER_PARAMS.get(name)
+
+
+def check_consistent(values: Mapping[str, float], where: str = "", lines: Optional[Mapping[str, int]] = None) -> None:
+  """Raise SpecError naming both parameters and values if `values` break one of `CONSTRAINTS`.
+  where: prefix for the message (a file name); lines: {name: line number} to cite."""
+  for lo, hi in CONSTRAINTS:
+    if lo in values and hi in values and not values[lo] < values[hi]:
+      at = lambda n: f" (line {lines[n]})" if lines and n in lines else ""  # noqa: E731
+      unit = param_def(lo).unit
+      raise SpecError(f"{where + ': ' if where else ''}contradictory parameters: {lo} = {values[lo]:g} {unit}{at(lo)} "
+                      f"must be below {hi} = {values[hi]:g} {unit}{at(hi)} ({param_def(lo).description} / "
+                      f"{param_def(hi).description})")
+
+
 # Multipliers from a .parm / .params file's unit to the SI unit used here.
 ARDUPILOT_FILE_SCALE = {"WPNAV_RADIUS": 0.01}
 PX4_FILE_SCALE: Dict[str, float] = {}
@@ -89,35 +120,102 @@ def resolve(defs: Mapping[str, ParamDef], overrides: Optional[Mapping[str, float
     if name not in defs:
       raise SpecError(f"unknown parameter {name!r} (known: {', '.join(sorted(defs))})")
     out[name] = check_value(name, value, defs[name])
+  check_consistent(out)
   return out
+
+
+def decode_text(data: bytes) -> str:
+  """Text of a parameter or spec file: UTF-8 (a leading byte-order mark dropped), else Latin-1, which decodes any
+  byte (comments written by old Windows tools); the readers then refuse non-ASCII outside comments."""
+  if data.startswith(b"\xef\xbb\xbf"):
+    data = data[3:]
+  try:
+    return data.decode("utf-8")
+  except UnicodeDecodeError:
+    return data.decode("latin-1")
+
+
+def read_text(path: str, what: str) -> str:
+  """`decode_text` of the file at `path`; SpecError naming `what` and the file if it cannot be read."""
+  try:
+    with open(path, "rb") as fh:
+      return decode_text(fh.read())
+  except OSError as e:
+    raise SpecError(f"cannot read {what} {path}: {e.strerror or e}") from None
+
+
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_MAX_LISTED = 20  # unknown names listed by name in the warning
 
 
 def load_params_file(path: str, known: Optional[Iterable[str]] = None) -> Dict[str, float]:
-  """Read a PX4 `.params` (tab-separated `1 1 NAME VALUE TYPE`) or ArduPilot `.parm` (`NAME,VALUE` / `NAME VALUE`) file.
+  """Read a PX4 `.params` (tab-separated `SYS COMP NAME VALUE TYPE`) or ArduPilot `.parm` (`NAME,VALUE` / `NAME VALUE`)
+  file: `loads_params` of its bytes (see there)."""
+  fmt = "parm" if os.path.splitext(path)[1].lower() == ".parm" else "params"
+  return loads_params(read_text(path, "parameter file"), fmt, known, name=path)
 
-  Returns {NAME: value in SI units} for the names in `known` (default: every drone and rover spec parameter); other
-  autopilot parameters in the file are ignored. Malformed lines raise SpecError naming file and line.
+
+def loads_params(text: Union[str, bytes], fmt: str = "params", known: Optional[Iterable[str]] = None,
+                 name: str = "<string>") -> Dict[str, float]:
+  """Parse parameter-file contents; returns {NAME: value in SI units} for the names in `known` (default: every drone
+  and rover spec parameter).
+
+  fmt "params" (PX4; ArduPilot lines are accepted too) or "parm" (ArduPilot only). Bytes are decoded by `decode_text`
+  (UTF-8 with or without a BOM, else Latin-1). '#' starts a comment. Every other non-blank line must be a parameter
+  line with an identifier name and a finite number (PX4: integer SYS, COMP and TYPE columns), ASCII only: the first
+  line that is not raises SpecError "<file>:<line>: ...", as does a name set twice, a known parameter outside its
+  range (PX4's -1 "disabled" included) or a contradictory pair (`CONSTRAINTS`). Names outside `known` (the autopilot's
+  other parameters) are ignored, listed in one ParamFileWarning.
   """
+  if fmt not in ("params", "parm"):
+    raise SpecError(f"parameter file format must be 'params' or 'parm', got {fmt!r}")
   known = set(DRONE_PARAMS) | set(ROVER_PARAMS) if known is None else set(known)
-  ext = os.path.splitext(path)[1].lower()
+  text = decode_text(text) if isinstance(text, bytes) else text.removeprefix("\ufeff")
   out: Dict[str, float] = {}
-  try:
-    with open(path, encoding="utf-8") as fh:
-      lines = fh.read().splitlines()
-  except OSError as e:
-    raise SpecError(f"cannot read parameter file {path}: {e.strerror}") from None
-  for lineno, raw in enumerate(lines, 1):
+  seen: Dict[tuple, tuple] = {}   # key -> (line, raw value) of its first setting
+  lines: Dict[str, int] = {}
+  unknown = []
+  for lineno, raw in enumerate(text.split("\n"), 1):
     line = raw.split("#", 1)[0].strip()
     if not line:
       continue
+    where = f"{name}:{lineno}"
+    if not (line.isascii() and line.replace("\t", " ").isprintable()):
+      raise SpecError(f"{where}: non-ASCII or control character in {_show(line)} (only comments may hold them)")
     fields = line.replace(",", " ").split()
-    if len(fields) >= 5 and ext != ".parm":  # PX4: vehicle-id component-id name value type
-      name, value, scale = fields[2], fields[3], PX4_FILE_SCALE
+    if len(fields) == 5 and fmt == "params":  # PX4: vehicle-id component-id name value type
+      pname, value, scale = fields[2], fields[3], PX4_FILE_SCALE
+      if not all(re.fullmatch(r"\d+", f) for f in (fields[0], fields[1], fields[4])):
+        raise SpecError(f"{where}: {_show(line)}: PX4 lines are 'SYS COMP NAME VALUE TYPE' with integer SYS, COMP "
+                        "and TYPE")
+      key = (fields[0], fields[1], pname)
     elif len(fields) == 2:  # ArduPilot
-      name, value, scale = fields[0], fields[1], ARDUPILOT_FILE_SCALE
+      pname, value, scale = fields[0], fields[1], ARDUPILOT_FILE_SCALE
+      key = ("", "", pname)
     else:
-      raise SpecError(f"{path}:{lineno}: cannot parse {raw.strip()!r} (expected PX4 'SYS COMP NAME VALUE TYPE' or "
-                      "ArduPilot 'NAME,VALUE')")
-    if name in known:
-      out[name] = check_value(f"{name} ({path}:{lineno})", value) * scale.get(name, 1.0)
+      raise SpecError(f"{where}: cannot parse {_show(line)} (expected PX4 'SYS COMP NAME VALUE TYPE' or ArduPilot "
+                      "'NAME,VALUE')")
+    if not _NAME.fullmatch(pname):
+      raise SpecError(f"{where}: {pname[:40]!r} is not a parameter name (letters, digits, '_')")
+    v = check_value(f"{pname} ({where})", value)
+    if key in seen:
+      first, first_value = seen[key]
+      raise SpecError(f"{where}: {pname} is set twice: {first_value} on line {first} and {value} on line {lineno}")
+    seen[key] = (lineno, value)
+    if pname in known:
+      out[pname] = check_value(f"{pname} ({where})", v * scale.get(pname, 1.0), param_def(pname))
+      lines[pname] = lineno
+    else:
+      unknown.append(pname)
+  check_consistent(out, name, lines)
+  if unknown:
+    listed = ", ".join(unknown[:_MAX_LISTED]) + (f" and {len(unknown) - _MAX_LISTED} more" if len(unknown) > _MAX_LISTED
+                                                 else "")
+    warnings.warn(f"{name}: ignored {len(unknown)} parameter(s) the specs do not use: {listed}", ParamFileWarning,
+                  stacklevel=2)
   return out
+
+
+def _show(line: str) -> str:
+  """A file line for a message: repr, cut to 60 characters."""
+  return repr(line if len(line) <= 60 else line[:57] + "...")

@@ -87,9 +87,17 @@ class SpecTable:
     raise SpecError(f"no spec named {name!r} (have: {', '.join(self.names)})")
 
   def formula(self, name: str, dt: Optional[float] = None) -> stl.Formula:
-    """Parsed formula of spec `name` with parameters substituted (intervals in steps when dt is given)."""
-    f = _parse(self[name], self.params, self[name].stl, "stl")
-    return stl.to_steps(f, dt) if dt is not None else f
+    """Parsed formula of spec `name` with parameters substituted (intervals in steps when dt is given; a window beyond
+    stl.MAX_WINDOW_STEPS steps raises SpecError naming the spec and the parameters its text uses)."""
+    spec = self[name]
+    f = _parse(spec, self.params, spec.stl, "stl")
+    if dt is None:
+      return f
+    try:
+      return stl.to_steps(f, dt)
+    except stl.STLError as e:
+      used = [f"{n}={v:g}" for n, v in self.param_items if re.search(rf"\b{re.escape(n)}\b", spec.stl)]
+      raise SpecError(f"spec {name}: {e}" + (f" (its parameters: {', '.join(used)})" if used else "")) from None
 
   def threshold(self, spec: Spec) -> float:
     return _threshold(spec, self.params)
@@ -123,6 +131,7 @@ def _threshold(spec: Spec, params: Mapping[str, float]) -> float:
 def validate(table: SpecTable) -> SpecTable:
   """Check every spec of `table` (STL, signals, parameters, reward fields); raise SpecError on the first problem."""
   params = table.params
+  P.check_consistent(params)
   seen = set()
   for s in table.specs:
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", s.name or ""):
@@ -270,7 +279,7 @@ def add_spec(table: SpecTable, name: str, stl_text: str, *, description: str = "
   for pname, value in (params or {}).items():
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(pname)) or pname in SIGNAL_NAMES:
       raise SpecError(f"bad parameter name {pname!r} (must be an identifier that is not a signal name)")
-    cur[pname] = P.check_value(pname, value)
+    cur[pname] = P.check_value(pname, value, P.param_def(pname))
   probe = Spec(name, description, stl_text)
   formula = _parse(probe, cur, stl_text, "stl")
   if family is None and reward_signals is None:
@@ -294,26 +303,33 @@ def load_spec_file(path: str, table: Optional[SpecTable] = None) -> SpecTable:
       spec S13 critical: always(altitude < SG_MAX_ALT)
   """
   table = table or SpecTable("custom", (), ())
-  try:
-    with open(path, encoding="utf-8") as fh:
-      text = fh.read()
-  except OSError as e:
-    raise SpecError(f"cannot read spec file {path}: {e.strerror}") from None
+  text = P.read_text(path, "spec file")
   if os.path.splitext(path)[1].lower() == ".json":
     try:
       doc = json.loads(text)
     except json.JSONDecodeError as e:
       raise SpecError(f"{path}: invalid JSON at line {e.lineno}: {e.msg}") from None
+    except (ValueError, RecursionError) as e:   # an integer of > 4300 digits; nesting deeper than json recurses
+      raise SpecError(f"{path}: unreadable JSON ({type(e).__name__}: {str(e)[:80]})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("params", {}), dict) \
+        or not isinstance(doc.get("specs", []), list):
+      raise SpecError(f"{path}: expected a JSON object {{\"params\": {{NAME: value}}, \"specs\": [{{...}}]}}")
     table = add_spec_params(table, doc.get("params", {}))
     for i, item in enumerate(doc.get("specs", [])):
+      if not isinstance(item, dict):
+        raise SpecError(f"{path}: spec #{i} is a JSON {type(item).__name__}, expected an object")
       item = dict(item)
       try:
         name, stl_text = item.pop("name"), item.pop("stl")
       except KeyError as e:
         raise SpecError(f"{path}: spec #{i} lacks the {e.args[0]!r} field") from None
+      if not isinstance(name, str) or not isinstance(stl_text, str):
+        raise SpecError(f"{path}: spec #{i}: 'name' and 'stl' must be strings")
       try:
         table = add_spec(table, name, stl_text, **item)
-      except TypeError as e:
+      except SpecError:
+        raise
+      except (TypeError, ValueError) as e:
         raise SpecError(f"{path}: spec {name}: {e}") from None
     return table
   pending: Dict[str, float] = {}
@@ -323,7 +339,7 @@ def load_spec_file(path: str, table: Optional[SpecTable] = None) -> SpecTable:
       continue
     m = re.fullmatch(r"param\s+([A-Za-z_]\w*)\s*=\s*(\S+)", line)
     if m:
-      pending[m.group(1)] = P.check_value(f"{m.group(1)} ({path}:{lineno})", m.group(2))
+      pending[m.group(1)] = P.check_value(f"{m.group(1)} ({path}:{lineno})", m.group(2), P.param_def(m.group(1)))
       continue
     m = re.fullmatch(r"spec\s+([A-Za-z_]\w*)(\s+critical)?\s*:\s*(.+)", line)
     if not m:
@@ -340,5 +356,5 @@ def add_spec_params(table: SpecTable, extra: Mapping[str, float]) -> SpecTable:
   """`table` with extra parameters defined (new names allowed)."""
   cur = table.params
   for n, v in extra.items():
-    cur[n] = P.check_value(n, v)
+    cur[n] = P.check_value(n, v, P.param_def(n))
   return validate(dataclasses.replace(table, param_items=tuple(cur.items())))

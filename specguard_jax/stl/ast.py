@@ -2,6 +2,17 @@
 
 Time intervals are kept in the unit they were written in (`Interval.unit` is "steps" or "s"); `to_steps(formula, dt)`
 converts every interval to control steps with an explicit step length `dt` (seconds). Only step intervals are evaluated.
+
+Size limits, the same on every route (the parser refuses a formula beyond them, `to_steps` and `check_size` one built
+in Python), so a formula that is accepted also works in the offline robustness, the online monitor and the spec tables:
+  * MAX_DEPTH levels of tree: every node is one level below its parent. The engine walks formulas recursively (a few
+    Python frames per level); the parser builds and / or chains as balanced trees, so a chain of n terms is only about
+    log2(n) levels deep. (The text's own nesting is bounded by parser.MAX_NESTING, about 3 x MAX_DEPTH, so that
+    str() of any accepted formula parses again.)
+  * MAX_NODES tree nodes (predicates and operators).
+  * MAX_WINDOW_STEPS control steps for every interval bound and for the span of nested windows (the summed upper
+    bounds along any path of the tree, `window_span`): the online monitor keeps span + 1 samples of every signal per
+    trace and unrolls one operation per sample and operator, so its program (and compile time) grows with the span.
 """
 
 from __future__ import annotations
@@ -10,7 +21,14 @@ import dataclasses
 import math
 from typing import Optional, Tuple, Union
 
-from specguard_jax.stl.errors import IntervalError, UnknownSignalError
+from specguard_jax.stl.errors import FormulaSizeError, IntervalError, UnknownSignalError
+
+MAX_DEPTH = 32
+"""Deepest formula tree accepted (levels; see the module docstring)."""
+MAX_NODES = 4096
+"""Most tree nodes (predicates + operators) in one formula."""
+MAX_WINDOW_STEPS = 1000
+"""Longest interval bound and nested-window span, in control steps (100 s at the envs' 0.1 s step)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,16 +189,72 @@ def _steps(v: float, dt: float, what: str) -> int:
   return int(r)
 
 
+def monitor_bytes(samples: float) -> str:
+  """Readable size of `samples` float32 values (the online monitor's buffer of one signal for one trace)."""
+  size = 4.0 * samples
+  for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+    if size < 1000 or unit == "PB":
+      return f"{size:.3g} {unit}"
+    size /= 1000
+  return ""
+
+
+def window_error(what: str, steps: float, dt: Optional[float] = None) -> IntervalError:
+  """The error for a window of `steps` control steps above MAX_WINDOW_STEPS (`what` names it; dt in s if known)."""
+  at_dt = f" at dt={dt:g} s" if dt is not None else ""
+  return IntervalError(f"{what}: a window of {steps:,.0f} steps{at_dt}; the online monitor would keep {steps + 1:,.0f} "
+                       f"samples per signal and trace ({monitor_bytes(steps + 1)} in float32) and unroll as many "
+                       f"operations; the maximum is {MAX_WINDOW_STEPS} steps")
+
+
+def check_size(f: Formula) -> Formula:
+  """Raise FormulaSizeError if `f` is deeper than MAX_DEPTH or has more than MAX_NODES nodes; returns `f`.
+  Walks the tree with an explicit stack (no recursion), stopping at the first limit crossed."""
+  stack, nodes = [(f, 1)], 0
+  while stack:
+    g, depth = stack.pop()
+    nodes += 1
+    if depth > MAX_DEPTH:
+      raise FormulaSizeError(f"formula nests more than {MAX_DEPTH} levels deep (the maximum)")
+    if nodes > MAX_NODES:
+      raise FormulaSizeError(f"formula has more than {MAX_NODES} nodes (predicates and operators; the maximum)")
+    stack.extend((c, depth + 1) for c in children(g))
+  return f
+
+
+def window_span(f: Formula) -> int:
+  """Longest chain of nested windows in steps: the summed interval upper bounds along the worst root-to-leaf path
+  (unbounded operators add 0). The online monitor buffers window_span(f) + 1 samples per signal."""
+  own = int(f.interval.hi) if getattr(f, "interval", None) is not None else 0
+  return own + max((window_span(c) for c in children(f)), default=0)
+
+
 def to_steps(f: Formula, dt: Optional[float] = None) -> Formula:
-  """Return `f` with every interval in control steps (`dt`: seconds per step, needed only for "s" intervals)."""
+  """Return `f` with every interval in control steps (`dt`: seconds per step, needed only for "s" intervals).
+
+  Raises FormulaSizeError / IntervalError when `f` is beyond the module's size limits (an interval bound or the nested
+  windows' span above MAX_WINDOW_STEPS steps, once converted)."""
+  out = _to_steps(check_size(f), dt)
+  span = window_span(out)
+  if span > MAX_WINDOW_STEPS:
+    text = str(f)
+    raise window_error(f"the nested windows of {text if len(text) <= 80 else text[:77] + '...'}", span, dt)
+  return out
+
+
+def _to_steps(f: Formula, dt: Optional[float]) -> Formula:
   if isinstance(f, Predicate):
     return f
   iv = getattr(f, "interval", None)
   if iv is not None and iv.unit != "steps":
     if dt is None or not (dt > 0 and math.isfinite(dt)):
       raise IntervalError(f"formula {f} has intervals in seconds: pass a positive dt (seconds per step)")
+    if not iv.hi / dt <= MAX_WINDOW_STEPS:
+      raise window_error(f"interval {iv} of {type(f).__name__.lower()}", iv.hi / dt, dt)
     iv = Interval(_steps(iv.lo, dt, "lo"), _steps(iv.hi, dt, "hi"), "steps")
-  kids = tuple(to_steps(c, dt) for c in children(f))
+  elif iv is not None and not iv.hi <= MAX_WINDOW_STEPS:
+    raise window_error(f"interval {iv} of {type(f).__name__.lower()}", iv.hi, dt)
+  kids = tuple(_to_steps(c, dt) for c in children(f))
   if isinstance(f, (Not,)):
     return Not(kids[0])
   if isinstance(f, (Always, Eventually)):

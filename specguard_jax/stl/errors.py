@@ -22,7 +22,11 @@ class UnknownSignalError(STLError):
 
 
 class IntervalError(STLError):
-  """An empty, inverted, negative or non-integral (after unit conversion) time interval."""
+  """An empty, inverted, negative, non-integral (after unit conversion) or too long time interval."""
+
+
+class FormulaSizeError(STLError):
+  """A formula beyond the engine's size limits (text length, nesting depth, node count: see `stl.ast`)."""
 
 
 class UnsupportedOnlineError(STLError):

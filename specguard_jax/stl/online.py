@@ -87,6 +87,8 @@ class OnlineMonitor:
   def init(self, batch_shape: Sequence[int] = (), dtype=jnp.float32) -> MonitorState:
     """Empty state for a batch of traces of shape `batch_shape`."""
     _, anchors, hw, hp = self._plan()
+    if max(hw, hp) > ast.MAX_WINDOW_STEPS:   # a formula built in Python, not through parse / to_steps
+      raise ast.window_error(f"online monitor of {str(self.formula)[:80]}", max(hw, hp))
     bs = tuple(batch_shape)
     names = self.signals
     window = {n: jnp.zeros(bs + (hw + 1,), dtype) for n in names} if hw >= 0 else {}
