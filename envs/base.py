@@ -39,6 +39,7 @@ from specguard_jax import math3d
 from specguard_jax import rewards as rewards_lib
 from specguard_jax import sensors as sensors_lib
 from specguard_jax import specs as specs_lib
+from specguard_jax.autopilot import fallback as fallback_lib
 from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
@@ -50,6 +51,7 @@ ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.a
 OBS_SIZE = 24
 OVERRIDE_FRAMES = ("world", "body")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
+RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
 PAPER_LAG_S = 1.0   # s; least checkpoint lag of the paper-mode reconstruction (EnvConfig.recon_mode, _recon_config)
 
 
@@ -129,6 +131,10 @@ class EnvConfig:
   # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
+  # 'fallback': while the alarm is up the navigator's horizontal setpoint slows down in proportion to the
+  # reconstruction's position uncertainty, widens the obstacle clearance and holds once the uncertainty exceeds the
+  # collision spec's margin (specguard_jax.autopilot.fallback; needs reconstruction=True). 'none': unchanged.
+  recovery_rule: str = "none"
   # How the EKFs (the autopilot's and, with reconstruction, the shadow filter's) run their tick: "xla" the XLA filter;
   # "lanes" one Mosaic GPU kernel per tick for the whole vmapped batch (specguard_jax/ekf_lanes.py; NVIDIA Hopper or
   # newer; a vmapped env's batch must be on one device: the trainer shard_maps the step, ppo/iteration.group_step;
@@ -178,6 +184,11 @@ class EnvConfig:
       raise ValueError(f"unknown recovery_estimator {self.recovery_estimator!r}; choose one of {RECOVERY_ESTIMATORS}")
     if self.recovery_estimator != "none" and (self.detector == "none" or self.reconstruction):
       raise ValueError(f"recovery_estimator={self.recovery_estimator!r} needs a detector and reconstruction=False")
+    if self.recovery_rule not in RECOVERY_RULES:
+      raise ValueError(f"unknown recovery_rule {self.recovery_rule!r}; choose one of {RECOVERY_RULES}")
+    if self.recovery_rule != "none" and not self.reconstruction:
+      raise ValueError(f"recovery_rule={self.recovery_rule!r} reads the reconstruction's uncertainty: it needs "
+                       "reconstruction=True")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
 
@@ -250,14 +261,17 @@ class RAVEnv(Env):
       n_u = 4 if self.vehicle == "drone" else 2
       self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)
       self.recon_cfg = self._recon_config(n_u)
+    if config.recovery_rule == "fallback":   # the collision spec's margin (S1) and the minimum-speed spec's bound (S7)
+      self.fallback_cfg = fallback_lib.FallbackConfig(margin=self.spec_table.threshold(self.spec_table["S1"]),
+                                                      min_speed=self.spec_table.threshold(self.spec_table["S7"]))
 
   def _recon_config(self, n_u: int):
     """The reconstruction's ReconConfig. Paper mode: the checkpoint must predate the attack's effect on the estimate,
     since nothing corrects the model's roll-out from it, so its lag covers the detector's delay: the oracle's
     configured delay (detector_delay), or the residual detector's diagnosis windows (DetectorConfig.diag_window_s /
     xcheck_window_s: it has no fixed delay; its median overt-attack delays are well under these windows, a stealthy
-    ramp's can be longer and then reaches the checkpoint); at least PAPER_LAG_S; checked by recon.check_lag. Fused mode: the defaults (its shadow filter corrects what a
-    short lag lets through)."""
+    ramp's can be longer and then reaches the checkpoint); at least PAPER_LAG_S; checked by recon.check_lag.
+    Fused mode: the defaults (its shadow filter corrects what a short lag lets through)."""
     cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg, mode=self.config.recon_mode)
     if cfg.mode != "paper":
       return cfg
@@ -529,6 +543,10 @@ class RAVEnv(Env):
     landed = self._vehicle_landed(sim)
     with jax.named_scope("navigator"):
       nav, vel_nav, leg_dir = nav_lib.nav_step(self._nav_params(), sim["nav"], mission, est.pos, landed, cfg.tick_dt)
+    if cfg.recovery_rule == "fallback":   # the navigator's setpoint as the fallback rule changes it under an alarm
+      d_est, g_est = worlds_lib.obstacle_sdf_and_grad(world, self._query_pos(est.pos))
+      vel_nav = fallback_lib.apply(self.fallback_cfg, vel_nav, fallback_lib.position_sigma(sim["recon"]), d_est,
+                                   g_est, sim["det"].alarm > 0)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)

@@ -15,6 +15,10 @@ Built in:
                       reconstructed state (the reconstruction mode: evaluate.py --recon, default "fused").
   delorean_paper      the same with the paper's reconstruction (EnvConfig.recon_mode "paper": the fitted model
                       rolled forward open loop from the checkpoint), whatever --recon says.
+  fallback            DeLorean plus the rule-based, uncertainty-aware fallback (no learning, EnvConfig.recovery_rule
+                      'fallback', specguard_jax.autopilot.fallback): while the alarm is up the navigator's setpoint
+                      slows down with the reconstruction's position uncertainty, widens obstacle clearance and holds
+                      once the uncertainty exceeds the collision spec's margin.
   specguard_no_recon  ablation: the run's policy with state reconstruction off.
 Other packages register more (`specguard_jax.baselines`, imported lazily by `available()` / `build()`).
 A builder that cannot build (e.g. its training run is missing) raises `NotAvailable(reason)`: the report lists the
@@ -221,6 +225,14 @@ def _delorean_paper(ctx: BuildContext) -> Controller:
                                          "open loop from the last trusted checkpoint for the compromised components")
 
 
+def _fallback(ctx: BuildContext) -> Controller:
+  d = _delorean(ctx)
+  return Controller("fallback", d.env_overrides + (("recovery_rule", "fallback"),), zero_policy, None,
+                    "DeLorean + the rule-based fallback: while the alarm is up, slow down in proportion to the "
+                    "reconstruction's position uncertainty over the spec margin, widen obstacle clearance, hold "
+                    "when it exceeds the margin")
+
+
 def _no_recon(ctx: BuildContext) -> Controller:
   d = ctx.run("specguard_no_recon")
   if d:   # a run trained without reconstruction (train.py --no-reconstruction)
@@ -247,5 +259,8 @@ register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py
 register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)")
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
 register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop reconstruction (recon_mode paper)")
+
+
+register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")
 register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)")
 register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)")

@@ -33,9 +33,12 @@ j draw where the sensors agree, since only the timing options differ):
   onset, attack_end [n] s  scheduled attack window (1e9 when attack-free)
   first_alarm [n] s      first detector alarm (any time; BIG when none or no detector)
   det_t [n] s            first alarm at or after the attack onset (BIG when none)
-  last_bad [n] s         last step in the recovery window [det_t, min(attack_end, t_end)] at which some spec's
-                         instantaneous compliance failed (-BIG when none)
-  end_ok [n] bool        instantaneous compliance at the last step of that window
+  bad_t [n] s            first step in [det_t, min(attack_end, t_end)] at which some spec's instantaneous
+                         compliance failed (BIG when none)
+  rec_t [n] s            first step of the first run of >= metrics.RECOVERY_HOLD_S s of instantaneous compliance
+                         that began after bad_t (BIG when none): the recovery instant of T2R (metrics.t2r)
+  ok_since [n] s         first step of the compliant run at the episode's end (BIG when its last step was not
+                         compliant)
   override_s [n] s       time the recovery policy's override was active
   min_obstacle [n] m     closest approach to an obstacle
   hazard_kind [n] int    hazard-timed settings: the hazard point (index into envs.hazards.HAZARD_KINDS; -1 none or
@@ -221,8 +224,9 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   onset = state.info["attack"].onset
   attack_end = onset + state.info["attack"].duration
   big = jnp.full((b,), BIG, jnp.float32)
-  rec0 = {"first_alarm": big, "det_t": big, "last_bad": -big, "end_ok": jnp.ones((b,), bool),
-          "override_s": jnp.zeros((b,), jnp.float32)}
+  hold_steps = max(1, int(round(metrics.RECOVERY_HOLD_S / env.dt)))
+  rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
+          "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32)}
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
   if len(traj_idx):
     rec0["traj"] = jnp.zeros((max_steps + 1, len(traj_idx), len(TRAJ_FIELDS)), jnp.float32)
@@ -256,8 +260,12 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
       rec["det_t"] = jnp.where(alarm & (now >= onset) & (rec["det_t"] >= BIG), now, rec["det_t"])
     ok = jnp.all((per_spec(nxt.info["signals"]) > 0.5) | ~weights, axis=-1)
     window = live & (rec["det_t"] < BIG) & (now >= rec["det_t"]) & (now <= attack_end + 1e-6)
-    rec["last_bad"] = jnp.where(window & ~ok, now, rec["last_bad"])
-    rec["end_ok"] = jnp.where(window, ok, rec["end_ok"])
+    rec["bad_t"] = jnp.where(window & ~ok & (rec["bad_t"] >= BIG), now, rec["bad_t"])
+    # the current run of compliant steps: its first step and its length (steps)
+    rec["ok_since"] = jnp.where(live, jnp.where(ok, jnp.minimum(rec["ok_since"], now), BIG), rec["ok_since"])
+    rec["ok_steps"] = jnp.where(live, jnp.where(ok, rec["ok_steps"] + 1, 0), rec["ok_steps"])
+    back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
+    rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
     new = tree_where(s.done > 0, s, nxt)
     if "traj" in rec:
@@ -278,9 +286,10 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "attacked": ep["attacked"] > 0, "unfinished": state.done == 0, "t_end": state.info["time"],
          "final_dist": final_dist, "onset": onset, "attack_end": attack_end,
          "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
-         "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "last_bad": rec["last_bad"],
-         "end_ok": rec["end_ok"], "override_s": rec["override_s"], "waypoints": mission.waypoints,
-         "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind, "hazard_t": hazard_t}
+         "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "bad_t": rec["bad_t"],
+         "rec_t": rec["rec_t"], "ok_since": rec["ok_since"], "override_s": rec["override_s"],
+         "waypoints": mission.waypoints, "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind,
+         "hazard_t": hazard_t}
   return out, rec.get("traj"), t
 
 

@@ -23,12 +23,22 @@ Definitions (what we chose where the paper leaves room):
                   the completion times of all completed gt twins of the evaluation (the paper's "average of the
                   minimum and maximum mission completion times in attack free missions"). md_rel: the same with
                   T_b = T_GT of each mission (a per-mission relative delay, for reference).
-  t2r             time to recovery (s), for attacked missions whose attack was detected (first alarm at or after
-                  the onset, t_d): recovery is the first time after which every spec is instantaneously compliant
-                  until the attack ends (or the mission ends, if earlier): t_r = (last non-compliant step in
-                  [t_d, attack end]) + dt, or t_d when there was none; T2R = t_r - t_d. A mission still
-                  non-compliant at the window's last step, or ending in a crash/collision, never recovered
-                  (T2R = inf: the CDF stays below 1).
+  any_violation   share of missions under attack (the attack became active before the mission ended) with any
+                  violation; attack-free settings: over all missions. No protection's SVR is 100 % by construction
+                  (it is its own twin): this is the figure to quote for it (and it is defined for every controller).
+  t2r             time to recovery (s), over the attacked missions whose attack was detected (first alarm at or after
+                  the onset, t_d) AND that were non-compliant after detection (some spec's instantaneous compliance
+                  failed at a step in [t_d, attack end]: the first such step is bad_t); the others have nothing to
+                  recover from (t2r_applicable says how many there were). Recovery is the first instant after bad_t
+                  from which every spec stayed instantaneously compliant for RECOVERY_HOLD_S s (rec_t: the first
+                  compliant step of that run), or from which the mission stayed compliant until it completed;
+                  T2R = t_r - t_d. A mission that never got back (non-compliant run to its end, or a crash /
+                  collision / NaN end) never recovered (T2R = inf: the CDF stays below 1).
+  paired tests    controllers fly the same missions (evaluation.py), so two controllers on one setting are compared
+                  per mission: McNemar's exact test on the discordant pairs (b: A violated and B did not, c: the
+                  reverse), two-sided binomial test of b against Bin(b + c, 1/2); on the SVR's event (any violation,
+                  over the missions whose twin violated), on any violation over all missions, and on critical-spec
+                  violations over all missions.
   detection       detect_rate: attacked missions with an alarm at or after the onset; delay = t_d - onset (s);
                   false_alarm_rate: an alarm before the onset (attack-free: any alarm).
 Confidence intervals: Wilson score intervals (95 %) for proportions, Student-t intervals (95 %) for means.
@@ -41,6 +51,8 @@ import math
 import numpy as np
 
 RSR_RADIUS_M = 5.0
+RECOVERY_HOLD_S = 3.0   # s: how long every spec must hold again for a recovery to count (T2R); the specs' own grace
+                        # (SG_ACCEL_TIME, 3 s) for the speed bounds, so a recovery is not a momentary pass
 BIG = 1e9
 Z95 = 1.959963984540054
 
@@ -130,19 +142,59 @@ def mission_delay(r, gt, t_b: float) -> tuple:
   return md, rel
 
 
+def critical_violation(r, critical) -> np.ndarray:
+  """[n] bool: a critical spec (`critical` [S] bool) violated."""
+  crit = np.asarray(critical, bool)
+  v = _b(r, "violated")
+  return np.any(v[:, crit], -1) if crit.any() else np.zeros(v.shape[0], bool)
+
+
 def t2r(r, dt: float) -> np.ndarray:
-  """[n] time to recovery (s): nan where not applicable (not attacked or never detected), inf where it never
-  recovered (see module docstring)."""
+  """[n] time to recovery (s): nan where not applicable (not attacked, never detected, or compliant throughout after
+  detection), inf where it never recovered (see module docstring). Reads det_t, bad_t, rec_t, ok_since (the first
+  step of the compliant run at the mission's end, BIG when its last step was non-compliant) and the end flags."""
+  del dt   # the records hold step times: the recovery instant is the first compliant step of the run
   det = np.asarray(r["det_t"], float)
-  applicable = _b(r, "attacked") & (det < BIG / 2)
-  last_bad = np.asarray(r["last_bad"], float)
-  ok = _b(r, "end_ok")
+  bad = np.asarray(r["bad_t"], float)
+  applicable = _b(r, "attacked") & (det < BIG / 2) & (bad < BIG / 2)
+  rec_t = np.asarray(r["rec_t"], float)
+  since = np.asarray(r["ok_since"], float)
+  ended_ok = _b(r, "complete") & (since < BIG / 2) & (since > bad)
+  t_r = np.where(rec_t < BIG / 2, rec_t, np.where(ended_ok, since, np.inf))
+  failed = np.zeros(det.shape, bool)
   for k in ("crash", "collision", "nan"):
     if k in r:
-      ok = ok & ~_b(r, k)
-  val = np.where(last_bad > -BIG / 2, np.maximum(last_bad + dt - det, 0.0), 0.0)
-  val = np.where(ok, val, np.inf)
+      failed = failed | _b(r, k)
+  val = np.where(failed, np.inf, np.maximum(t_r - det, 0.0))
   return np.where(applicable, val, np.nan)
+
+
+def mcnemar(a, b) -> dict:
+  """McNemar's exact test of two paired boolean outcomes a, b [n] (e.g. 'violated' for two controllers on the same
+  missions): {'b': a and not b, 'c': b and not a, 'n': pairs, 'p': two-sided exact p-value}. Conditional on the
+  b + c discordant pairs, b ~ Bin(b + c, 1/2) under the null of equal rates; p = 1 with no discordant pair.
+  scipy comes with jax (one of its requirements; mean_ci uses it too)."""
+  from scipy import stats
+  a, b_ = np.asarray(a, bool), np.asarray(b, bool)
+  nb, nc = int(np.sum(a & ~b_)), int(np.sum(~a & b_))
+  p = float(stats.binomtest(nb, nb + nc, 0.5).pvalue) if nb + nc else 1.0
+  return {"b": nb, "c": nc, "n": int(a.size), "p": p}
+
+
+def paired(ra, rb, twin=None, *, critical) -> dict:
+  """McNemar tests of controller A (records ra) against B (rb) on the same missions in the same order:
+  'any_violation' and 'critical' over all missions, 'svr' over the missions whose no-protection twin violated (the
+  SVR's denominator; absent without a twin)."""
+  for k in ("setting", "mission"):
+    if k in ra and k in rb and not np.array_equal(np.asarray(ra[k]), np.asarray(rb[k])):
+      raise ValueError(f"records are not paired: their {k!r} columns differ")
+  va, vb = violation(ra), violation(rb)
+  out = {"any_violation": mcnemar(va, vb),
+         "critical": mcnemar(critical_violation(ra, critical), critical_violation(rb, critical))}
+  if twin is not None:
+    intended = violation(twin)
+    out["svr"] = mcnemar(va[intended], vb[intended])
+  return out
 
 
 def _stats(x) -> dict | None:
@@ -177,8 +229,8 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
   out["collision_rate_ci"] = rate(_b(r, "collision"))
   out["crash_rate"] = rate(_b(r, "crash"))
   out["stall_rate"] = rate(_b(r, "stall"))
-  crit = np.asarray(critical, bool)
-  out["critical_rate"] = rate(np.any(_b(r, "violated")[:, crit], -1) if crit.any() else np.zeros(n, bool))
+  out["any_violation_rate"] = rate(viol, _b(r, "attacked")) if attacked else dict(out["svr_all_rate"])
+  out["critical_rate"] = rate(critical_violation(r, critical))
   if per_spec:
     v = _b(r, "violated")
     out["spec_rate"] = {s: float(np.mean(v[:, i])) if n else None for i, s in enumerate(spec_names)}
@@ -193,6 +245,8 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
   t = t2r(r, dt)
   app = np.isfinite(t) | np.isinf(t)
   if attacked:
+    detected_attacked = _b(r, "attacked") & (np.asarray(r["det_t"], float) < BIG / 2)
+    out["t2r_applicable"] = rate(app, detected_attacked)
     out["t2r_recovered"] = rate(np.isfinite(t), app) if app.any() else None
     out["t2r_stats"] = _stats(t)
     fin = np.sort(t[np.isfinite(t)])
@@ -207,6 +261,7 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
     out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < BIG / 2)
   out["svr"] = out["svr_rate"]["value"]
   out["svr_all"] = out["svr_all_rate"]["value"]
+  out["any_violation"] = out["any_violation_rate"]["value"]
   out["rsr"] = out["rsr_rate"]["value"]
   out["collision_rate"] = out["collision_rate_ci"]["value"]
   out["md"] = out["md_stats"]["mean"] if out.get("md_stats") else None

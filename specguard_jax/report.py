@@ -106,7 +106,7 @@ def build(results: dict, records: dict, meta: dict) -> dict:
         out[key] = M.summarize(r, tw, gt, attacked=True, dt=dt, spec_names=names, critical=crit, t_b=t_b)
         out[key]["settings"] = len(parts)
       per[cname] = out
-    groups[gname] = dict(g, metrics=per, t_b=t_b)
+    groups[gname] = dict(g, metrics=per, t_b=t_b, paired=paired_tests(records, gname, settings, crit))
   rep = {"meta": meta, "not_run": results["not_run"], "skipped_experiments": results["skipped_experiments"],
          "groups": groups, "paper": PAPER}
   rep["totals"] = {"missions": int(sum(r["missions"] for r in results["rollouts"])),
@@ -121,6 +121,29 @@ def build(results: dict, records: dict, meta: dict) -> dict:
   return rep
 
 
+def paired_tests(records: dict, group: str, settings, critical) -> dict:
+  """{setting (and pooled/<profile>, pooled/attacked): {"A vs B": metrics.paired(...)}} for every pair of the group's
+  controllers (in the records' order): McNemar's exact test on the same missions (SVR event over the intended
+  missions, any violation and critical-spec violations over all missions)."""
+  ctrls = [c for (g, c) in records if g == group]
+  twin = records.get((group, "no_protection"))
+  rows = {s: np.asarray(records[(group, ctrls[0])]["setting"]) == i for i, s in enumerate(settings)} if ctrls else {}
+  for p in ("overt", "stealthy"):
+    ids = [i for i, s in enumerate(settings) if _single(s) and _profile(s) == p]
+    if ids and ctrls:
+      rows[f"pooled/{p}"] = np.isin(records[(group, ctrls[0])]["setting"], ids)
+  ids = [i for i, s in enumerate(settings) if _single(s)]
+  if ids and ctrls:
+    rows["pooled/attacked"] = np.isin(records[(group, ctrls[0])]["setting"], ids)
+  out = {}
+  for s, mask in rows.items():
+    tw = M.select(twin, mask) if twin is not None and s != "attack_free" else None
+    out[s] = {f"{a} vs {b}": M.paired(M.select(records[(group, a)], mask), M.select(records[(group, b)], mask), tw,
+                                      critical=critical)
+              for i, a in enumerate(ctrls) for b in ctrls[i + 1:]}
+  return out
+
+
 def _m(rep, group, ctrl, setting, key="svr"):
   v = rep["groups"].get(group, {}).get("metrics", {}).get(ctrl, {}).get(setting, {})
   if key in ("svr", "svr_all", "rsr", "md", "collision_rate"):
@@ -130,6 +153,12 @@ def _m(rep, group, ctrl, setting, key="svr"):
 
 def _pct(x):
   return None if x is None else 100.0 * x
+
+
+def _svr_cell(rep, group, ctrl, setting):
+  """The SVR to quote: no protection's is 100 % by construction (it is its own twin), so it gets its share of attacked
+  missions with any violation instead (metrics.summarize 'any_violation')."""
+  return _m(rep, group, ctrl, setting, "any_violation" if ctrl == "no_protection" else "svr")
 
 
 def primary_specguard(rep, group="main"):
@@ -147,9 +176,10 @@ def experiments(rep) -> dict:
   ctrls = list(main)
   profiles = [p for p in ("overt", "stealthy") if any(f"pooled/{p}" in v for v in main.values())]
   ex["compliance"] = {c: _pct(_m(rep, "main", c, "attack_free", "svr_all")) for c in ctrls}
-  ex["table5"] = {p: {c: _pct(_m(rep, "main", c, f"pooled/{p}")) for c in ("no_protection", "specguard_pc",
+  ex["table5"] = {p: {c: _pct(_svr_cell(rep, "main", c, f"pooled/{p}")) for c in ("no_protection", "specguard_pc",
                                                                            "specguard_rc")} for p in profiles}
-  ex["fig9"] = {p: {c: {"svr": _pct(_m(rep, "main", c, f"pooled/{p}")),
+  ex["fig9"] = {p: {c: {"svr": _pct(_svr_cell(rep, "main", c, f"pooled/{p}")),
+                        "any_violation": _pct(_m(rep, "main", c, f"pooled/{p}", "any_violation")),
                         "rsr": _pct(_m(rep, "main", c, f"pooled/{p}", "rsr")),
                         "collision": _pct(_m(rep, "main", c, f"pooled/{p}", "collision_rate"))} for c in ctrls}
                 for p in profiles}
@@ -164,14 +194,14 @@ def experiments(rep) -> dict:
                     for c in ("specguard_rc", "specguard_pc", "delorean", "specguard_no_recon", "specguard_binary")
                     if c in main}
   multi = [s for s in rep["groups"].get("main", {}).get("settings", []) if "+" in s]
-  ex["multi"] = {s: {c: {"svr": _pct(_m(rep, "main", c, s)), "rsr": _pct(_m(rep, "main", c, s, "rsr"))}
+  ex["multi"] = {s: {c: {"svr": _pct(_svr_cell(rep, "main", c, s)), "rsr": _pct(_m(rep, "main", c, s, "rsr"))}
                      for c in ctrls} for s in multi}
   ex["unseen"] = {}
   for g in ("suburban_to_urban", "urban_to_suburban"):
     gm = rep["groups"].get(g, {}).get("metrics", {})
-    ex["unseen"][g] = {c: {p: _pct(_m(rep, g, c, f"pooled/{p}")) for p in profiles} for c in gm}
+    ex["unseen"][g] = {c: {p: _pct(_svr_cell(rep, g, c, f"pooled/{p}")) for p in profiles} for c in gm}
   gm = rep["groups"].get("rover", {}).get("metrics", {})
-  ex["rover"] = {c: {"svr": _pct(_m(rep, "rover", c, "pooled/attacked")),
+  ex["rover"] = {c: {"svr": _pct(_svr_cell(rep, "rover", c, "pooled/attacked")),
                      "rsr": _pct(_m(rep, "rover", c, "pooled/attacked", "rsr")),
                      "md": _m(rep, "rover", c, "pooled/attacked", "md")} for c in gm}
   ex["t2r"] = {c: {p: main[c].get(f"pooled/{p}", {}).get("t2r_stats") for p in profiles} for c in ctrls}
@@ -257,7 +287,10 @@ def markdown(rep) -> str:
        "- SVR = observed / intended violations (intended: the same mission flown with no protection violated a spec "
        "or crashed); RSR = completed within 5 m of the last waypoint without crash/collision/stall, over missions "
        "under attack; MD = (T - T_GT) / T_b x 100 over completed missions; definitions in specguard_jax/metrics.py. "
-       "All values in %, 95 % Wilson intervals in report.json.", ""]
+       "All values in %, 95 % Wilson intervals in report.json.",
+       "- No protection is its own twin, so its SVR is 100 % by construction: wherever a table quotes an SVR for "
+       "no protection it is its share of missions under attack with any violation (column 'any viol.' for every "
+       "controller).", ""]
   if meta.get("recon_modes"):
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
@@ -272,7 +305,7 @@ def markdown(rep) -> str:
     paper = P["compliance"]["binary"] if c == "specguard_binary" else (0.0 if c.startswith("specguard") else None)
     L.append(f"| {c} | {_f(v)} | {_f(paper)} |")
   L += ["", "## Table 5: SVR under overt and stealthy attacks (ours / paper)", "",
-        "| attack | no protection | SpecGuard-PC | SpecGuard-RC |", "|---|---|---|---|"]
+        "| attack | no protection (any viol.) | SpecGuard-PC | SpecGuard-RC |", "|---|---|---|---|"]
   for p, row in ex["table5"].items():
     cells = [f"{_f(row[c])} / {_f(P['table5'][p][c])}" for c in ("no_protection", "specguard_pc", "specguard_rc")]
     L.append(f"| {p} | " + " | ".join(cells) + " |")
@@ -327,8 +360,10 @@ def markdown(rep) -> str:
       L.append(f"| {c} | {_f(v['svr'])} | {_f(v['rsr'])} | {_f(v['md'])} |")
     L.append("")
   L += [f"## Time to recovery and detection ({P['t2r']})", "",
-        "| controller | profile | T2R mean [95 % CI] s | T2R median s | recovered (T2R finite) | detected | "
-        "detection delay s |", "|---|---|---|---|---|---|---|"]
+        f"T2R: from detection until every spec held again for {M.RECOVERY_HOLD_S:g} s, over the detected missions "
+        "that were non-compliant after detection ('needed recovery').", "",
+        "| controller | profile | T2R mean [95 % CI] s | T2R median s | needed recovery | recovered (T2R finite) | "
+        "detected | detection delay s |", "|---|---|---|---|---|---|---|---|"]
   main = rep["groups"].get("main", {}).get("metrics", {})
   for c, rows in main.items():
     for p in rep["meta"]["profiles"]:
@@ -338,16 +373,18 @@ def markdown(rep) -> str:
       t = v.get("t2r_stats")
       d = v.get("detection_delay")
       L.append(f"| {c} | {p} | {_f(t['mean']) + ' [' + _f(t['ci'][0]) + ', ' + _f(t['ci'][1]) + ']' if t else 'n/a'}"
-               f" | {_f(t['median']) if t else 'n/a'} | {_ci(v.get('t2r_recovered'))} | {_ci(v.get('detect_rate'))}"
+               f" | {_f(t['median']) if t else 'n/a'} | {_ci(v.get('t2r_applicable'))}"
+               f" | {_ci(v.get('t2r_recovered'))} | {_ci(v.get('detect_rate'))}"
                f" | {_f(d['mean'], 2) if d else 'n/a'} |")
   L += ["", "## Every setting (main group)", "",
-        "| controller | setting | missions | SVR [CI] | SVR all | RSR [CI] | MD % | collisions | critical |",
+        "| controller | setting | missions | SVR [CI] | any viol. [CI] | RSR [CI] | MD % | collisions | critical |",
         "|---|---|---|---|---|---|---|---|---|"]
   for c, rows in main.items():
     for s, v in rows.items():
-      L.append(f"| {c} | {s} | {v['missions']} | {_ci(v['svr_rate'])} | {_f(_pct(v['svr_all']))} | "
+      L.append(f"| {c} | {s} | {v['missions']} | {_ci(v['svr_rate'])} | {_ci(v.get('any_violation_rate'))} | "
                f"{_ci(v['rsr_rate'])} | {_f(v['md'])} | {_f(_pct(v['collision_rate']))} | "
                f"{_f(_pct(v['critical_rate']['value']))} |")
+  L += paired_markdown(rep)
   L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
   return "\n".join(L)
 
@@ -374,6 +411,49 @@ def hard_markdown(table) -> list:
       L.append(f"| {camp} | {c} | {v['missions']} | {cell(v['svr'])} | {cell(v['critical'])} | {cell(v['rsr'])} | "
                f"{md_s} |")
   return L + [""]
+
+
+KEY_OPPONENTS = ("no_protection", "delorean")
+
+
+def _pair(pairs, a, b):
+  """The test of a vs b whichever order the report stored it in, as (test, swapped)."""
+  if f"{a} vs {b}" in pairs:
+    return pairs[f"{a} vs {b}"], False
+  return pairs.get(f"{b} vs {a}"), True
+
+
+def _mc(t, swapped):
+  """'b/c p' of one McNemar test, b counted for the row's controller."""
+  if not t:
+    return "n/a"
+  b, c = (t["c"], t["b"]) if swapped else (t["b"], t["c"])
+  return f"{b}/{c} p={t['p']:.2g}"
+
+
+def paired_markdown(rep, group="main") -> list:
+  """Each controller against no protection and DeLorean per setting (all pairs in report.json)."""
+  paired = rep["groups"].get(group, {}).get("paired") or {}
+  ctrls = list(rep["groups"].get(group, {}).get("metrics", {}))
+  rows = []
+  for s, pairs in paired.items():
+    for opp in KEY_OPPONENTS:
+      if opp not in ctrls:
+        continue
+      for c in ctrls:
+        if c == opp or (opp == "delorean" and c == "no_protection"):
+          continue
+        t, sw = _pair(pairs, c, opp)
+        if t:
+          rows.append(f"| {s} | {c} vs {opp} | {_mc(t.get('svr'), sw)} | {_mc(t['any_violation'], sw)} | "
+                      f"{_mc(t['critical'], sw)} |")
+  if not rows:
+    return []
+  return ["", f"## Paired comparisons ({group} group): McNemar's exact test on the same missions", "",
+          "b/c = missions where the first controller violated and the second did not / the reverse; p = two-sided "
+          "exact p-value (binomial test of b against Bin(b + c, 1/2)). SVR: over the missions whose no-protection "
+          "twin violated; any / critical violation: over all missions of the setting.", "",
+          "| setting | pair | SVR b/c p | any violation b/c p | critical b/c p |", "|---|---|---|---|---|"] + rows
 
 
 # ------------------------------------------------------------------------------------------------- figures

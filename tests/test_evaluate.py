@@ -80,6 +80,15 @@ def test_twin_reproduces_itself(report):
       assert m["svr"] == 1.0
     assert m["md"] == ms["no_protection"][s]["md"] and m["rsr"] == ms["no_protection"][s]["rsr"]
   assert ms["autopilot_copy"]["attack_free"]["md"] == 0.0   # T_SG = T_GT: its own ground truth
+  # paired tests: the same controller twice has no discordant mission (p = 1), on every setting and pool
+  pairs = rep["groups"]["main"]["paired"]
+  assert set(pairs) == set(rep["groups"]["main"]["settings"]) | {"pooled/overt", "pooled/attacked"}
+  for s, tests in pairs.items():
+    for k in ("any_violation", "critical") + (("svr",) if s != "attack_free" else ()):
+      t = tests["no_protection vs autopilot_copy"][k]
+      assert (t["b"], t["c"], t["p"]) == (0, 0, 1.0), (s, k)
+    assert 0.0 <= ms["no_protection"][s]["any_violation"] <= 1.0
+  assert "McNemar" in open(os.path.join(out, "report.md")).read()
 
 
 def _cli(*args):

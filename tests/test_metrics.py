@@ -18,7 +18,8 @@ def recs(n, **kw):
        "crash": np.zeros(n, bool), "stall": np.zeros(n, bool), "nan": np.zeros(n, bool),
        "attacked": np.ones(n, bool), "t_end": np.full(n, 100.0), "final_dist": np.ones(n),
        "onset": np.full(n, 30.0), "attack_end": np.full(n, 60.0), "first_alarm": np.full(n, M.BIG),
-       "det_t": np.full(n, M.BIG), "last_bad": np.full(n, -M.BIG), "end_ok": np.ones(n, bool)}
+       "det_t": np.full(n, M.BIG), "bad_t": np.full(n, M.BIG), "rec_t": np.full(n, M.BIG),
+       "ok_since": np.full(n, 0.1)}
   for k, v in kw.items():
     r[k] = np.asarray(v, r[k].dtype).reshape(r[k].shape) if np.ndim(v) else np.full(r[k].shape, v, r[k].dtype)
   return r
@@ -80,19 +81,94 @@ def test_mission_delay_known_times():
 
 
 def test_t2r_from_a_constructed_trace():
-  # mission 0: detected at 31 s, last non-compliant step 35 s -> recovered at 35.1 s: T2R 4.1 s
-  # mission 1: detected, compliant throughout -> 0 s;  mission 2: still violating at the attack's end -> inf
-  # mission 3: never detected -> n/a;  mission 4: detected but crashed -> inf;  mission 5: attack-free -> n/a
-  r = recs(6, det_t=[31.0, 40.0, 32.0, M.BIG, 33.0, M.BIG], last_bad=[35.0, -M.BIG, 60.0, -M.BIG, 34.0, -M.BIG],
-           end_ok=[1, 1, 0, 1, 1, 1], crash=[0, 0, 0, 0, 1, 0], attacked=[1, 1, 1, 1, 1, 0])
+  # mission 0: detected at 31 s, non-compliant at 33 s, compliant again from 35.1 s for 3 s -> T2R 4.1 s
+  # mission 1: detected, compliant throughout after detection -> n/a (nothing to recover from)
+  # mission 2: non-compliant after detection and never 3 s compliant again, ended non-compliant -> inf
+  # mission 3: never detected -> n/a;  mission 4: recovered but crashed -> inf;  mission 5: attack-free -> n/a
+  # mission 6: non-compliant at 40 s, then compliant from 41 s until it completed at 42 s (< 3 s) -> 41 - 38 = 3 s
+  r = recs(7, det_t=[31.0, 40.0, 32.0, M.BIG, 33.0, M.BIG, 38.0],
+           bad_t=[33.0, M.BIG, 35.0, M.BIG, 34.0, M.BIG, 40.0],
+           rec_t=[35.1, M.BIG, M.BIG, M.BIG, 36.0, M.BIG, M.BIG],
+           ok_since=[35.1, 0.1, M.BIG, 0.1, 36.0, 0.1, 41.0], t_end=[100.0] * 6 + [42.0],
+           crash=[0, 0, 0, 0, 1, 0, 0], complete=[1, 1, 0, 1, 0, 1, 1], attacked=[1, 1, 1, 1, 1, 0, 1])
   t = M.t2r(r, DT)
-  assert t[0] == pytest.approx(4.1) and t[1] == 0.0 and math.isinf(t[2]) and math.isnan(t[3])
-  assert math.isinf(t[4]) and math.isnan(t[5])
+  assert t[0] == pytest.approx(4.1) and math.isnan(t[1]) and math.isinf(t[2]) and math.isnan(t[3])
+  assert math.isinf(t[4]) and math.isnan(t[5]) and t[6] == pytest.approx(3.0)
   s = summ(r)
+  assert s["t2r_applicable"]["k"] == 4 and s["t2r_applicable"]["n"] == 5
   assert s["t2r_recovered"]["k"] == 2 and s["t2r_recovered"]["n"] == 4
-  assert s["t2r_stats"]["median"] == pytest.approx(2.05)
-  assert s["detect_rate"]["k"] == 4 and s["detect_rate"]["n"] == 5
-  assert s["detection_delay"]["mean"] == pytest.approx((1 + 10 + 2 + 3) / 4)
+  assert s["t2r_stats"]["median"] == pytest.approx(3.55)
+  assert s["detect_rate"]["k"] == 5 and s["detect_rate"]["n"] == 6
+  assert s["detection_delay"]["mean"] == pytest.approx((1 + 10 + 2 + 3 + 8) / 5)
+
+
+def test_t2r_records_from_a_rollout_step_sequence():
+  """The rollout's per-step recurrences (evaluation._rollout) on a scripted compliance trace give the recovery
+  instant metrics.t2r expects: first compliant step of the first >= 3 s compliant run after the first bad step."""
+  dt, hold = 0.1, int(round(M.RECOVERY_HOLD_S / 0.1))
+  det = 1.0
+  # compliant until 2.0 s, bad 2.0-2.4 s, compliant 2.5-3.9 s (1.5 s: too short), bad 4.0 s, compliant from 4.1 s
+  times = np.round(np.arange(1, 101) * dt, 6)
+  ok = ~(((times >= 2.0) & (times <= 2.4)) | (times == 4.0))
+  bad_t = rec_t = since = M.BIG
+  steps = 0
+  for now, o in zip(times, ok):
+    if now >= det and not o and bad_t >= M.BIG:
+      bad_t = now
+    since = min(since, now) if o else M.BIG
+    steps = steps + 1 if o else 0
+    if bad_t < M.BIG and rec_t >= M.BIG and steps >= hold:
+      rec_t = since
+  r = recs(1, det_t=det, bad_t=bad_t, rec_t=rec_t, ok_since=since, onset=0.5, attack_end=60.0)
+  assert bad_t == pytest.approx(2.0) and rec_t == pytest.approx(4.1)
+  assert M.t2r(r, dt)[0] == pytest.approx(3.1)
+
+
+def test_any_violation_share_is_not_circular_for_no_protection():
+  """No protection is its own twin: SVR 100 % by construction; the any-violation share over missions under attack
+  is the figure that says how harmful the attacks were."""
+  r = recs(8, attacked=[1, 1, 1, 1, 1, 1, 0, 0])   # the last two ended before the attack's onset
+  r["violated"][:3, 0] = True
+  r["crash"][6] = True                              # a crash in a mission the attack never reached: not counted
+  s = summ(r, twin=r)
+  assert s["svr"] == 1.0 and s["svr_rate"]["n"] == 4
+  assert s["any_violation"] == pytest.approx(3 / 6)
+  assert s["any_violation_rate"]["k"] == 3 and s["any_violation_rate"]["n"] == 6
+  assert s["svr_all"] == pytest.approx(4 / 8)
+  s = summ(r, attacked=False)                       # attack-free: over all missions
+  assert s["any_violation"] == pytest.approx(4 / 8)
+
+
+def test_mcnemar_exact_p_values():
+  # b = 10, c = 0: p = 2 * 0.5^10
+  a = np.r_[np.ones(10, bool), np.zeros(5, bool), np.ones(3, bool)]
+  b = np.r_[np.zeros(10, bool), np.zeros(5, bool), np.ones(3, bool)]
+  m = M.mcnemar(a, b)
+  assert (m["b"], m["c"], m["n"]) == (10, 0, 18) and m["p"] == pytest.approx(2 * 0.5 ** 10)
+  assert M.mcnemar(b, a)["p"] == pytest.approx(2 * 0.5 ** 10) and M.mcnemar(b, a)["c"] == 10
+  # b = 3, c = 1: P(X <= 1) + P(X >= 3) for Bin(4, 1/2) = (1 + 4 + 4 + 1) / 16
+  m = M.mcnemar([1, 1, 1, 0, 0], [0, 0, 0, 1, 0])
+  assert (m["b"], m["c"]) == (3, 1) and m["p"] == pytest.approx(10 / 16)
+  # b = c: p = 1; no discordant pair: p = 1
+  assert M.mcnemar([1, 0], [0, 1])["p"] == pytest.approx(1.0)
+  assert M.mcnemar([1, 0, 0], [1, 0, 0]) == {"b": 0, "c": 0, "n": 3, "p": 1.0}
+
+
+def test_paired_tests_on_constructed_controllers():
+  twin = recs(12)
+  twin["violated"][:8, 1] = True          # intended: missions 0-7
+  a, b = recs(12), recs(12)
+  a["violated"][:6, 1] = True             # A violates 0-5, B violates 0 only; B also violates S12 in mission 10
+  b["violated"][0, 1] = True
+  b["violated"][10, 11] = True
+  p = M.paired(a, b, twin, critical=CRIT)
+  assert (p["svr"]["b"], p["svr"]["c"], p["svr"]["n"]) == (5, 0, 8)
+  assert (p["any_violation"]["b"], p["any_violation"]["c"], p["any_violation"]["n"]) == (5, 1, 12)
+  assert p["svr"]["p"] == pytest.approx(2 * 0.5 ** 5)
+  assert (p["critical"]["b"], p["critical"]["c"]) == (5, 1)   # S2 and S12 are critical
+  a["mission"], b["mission"] = np.arange(12), np.arange(12)[::-1]
+  with pytest.raises(ValueError):
+    M.paired(a, b, twin, critical=CRIT)
 
 
 def test_confidence_intervals_sane():
