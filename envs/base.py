@@ -45,13 +45,14 @@ from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import CONTROL_MODES, DETECTORS, REWARDS, SensorReadings, TrueState
+from specguard_jax.types import CONTROL_MODES, DETECTORS, RECON_MODES, REWARDS, SensorReadings, TrueState
 
 ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
 OBS_SIZE = 24
 OVERRIDE_FRAMES = ("world", "body")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
+PAPER_LAG_S = 1.0   # s; least checkpoint lag of the paper-mode reconstruction (EnvConfig.recon_mode, _recon_config)
 
 
 @struct.dataclass
@@ -120,6 +121,10 @@ class EnvConfig:
   override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
   dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
+  # How the reconstruction estimates the compromised components (estimation.recon.ReconConfig.mode): "fused" a
+  # closed-loop shadow EKF on the uncompromised sensors; "paper" the fitted model rolled forward open loop from a
+  # checkpoint at least the detector's delay old (the paper's / DeLorean's; `_recon_config`).
+  recon_mode: str = "fused"
   # Prior-work baselines (specguard_jax.baselines, docs/BASELINES.md), active while the detector's alarm is up:
   # 'software_sensors' (SSR: model-predicted readings replace the compromised sensor's before the autopilot's EKF) |
   # 'dae' (UnRocker: the autopilot flies on the denoising autoencoder's estimate). recovery_model: the file the
@@ -171,6 +176,8 @@ class EnvConfig:
       raise ValueError("detector='residual' reads the EKF's test ratios: it needs ekf_records=True")
     if self.reconstruction and self.detector == "none":
       raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
+    if self.recon_mode not in RECON_MODES:
+      raise ValueError(f"unknown recon_mode {self.recon_mode!r}; choose one of {RECON_MODES}")
     if self.reward not in REWARDS:
       raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
     if self.recovery_estimator not in RECOVERY_ESTIMATORS:
@@ -253,10 +260,28 @@ class RAVEnv(Env):
     if config.reconstruction:
       n_u = 4 if self.vehicle == "drone" else 2
       self.dyn_params = model_file.load_params(config.dynamics_model or model_file.default_path(self.vehicle), n_u)
-      self.recon_cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg)
+      self.recon_cfg = self._recon_config(n_u)
     if config.recovery_rule == "fallback":   # the collision spec's margin (S1) and the minimum-speed spec's bound (S7)
       self.fallback_cfg = fallback_lib.FallbackConfig(margin=self.spec_table.threshold(self.spec_table["S1"]),
                                                       min_speed=self.spec_table.threshold(self.spec_table["S7"]))
+
+  def _recon_config(self, n_u: int):
+    """The reconstruction's ReconConfig. Paper mode: the checkpoint must predate the attack's effect on the estimate,
+    since nothing corrects the model's roll-out from it, so its lag covers the detector's delay: the oracle's
+    configured delay (detector_delay), or the residual detector's diagnosis windows (DetectorConfig.diag_window_s /
+    xcheck_window_s: it has no fixed delay; its median overt-attack delays are well under these windows, a stealthy
+    ramp's can be longer and then reaches the checkpoint); at least PAPER_LAG_S; checked by recon.check_lag.
+    Fused mode: the defaults (its shadow filter corrects what a short lag lets through)."""
+    cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg, mode=self.config.recon_mode)
+    if cfg.mode != "paper":
+      return cfg
+    delay = (self.config.detector_delay if self.config.detector == "oracle"
+             else max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s))
+    lag = int(np.ceil(max(PAPER_LAG_S, delay) / self.config.tick_dt - 1e-6))
+    calib = int(round(cfg.paper_calib_s / self.config.tick_dt))   # entries before the checkpoint, for calibration
+    cfg = dataclasses.replace(cfg, lag=lag, window=max(cfg.window, lag + 1 + calib))
+    recon_lib.check_lag(cfg, delay, self.config.tick_dt)
+    return cfg
 
   def _default_specs(self):
     return specs_lib.drone_specs() if self.vehicle == "drone" else specs_lib.rover_specs()

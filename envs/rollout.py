@@ -109,6 +109,8 @@ TICK_FIELDS = {
              "not cumulative)",
     "vel_nav": "the navigator's velocity setpoint of the tick (m/s), from its state at the tick's start and the "
                "tick's EKF position",
+    "x_rec": "x'_t [15] after the tick as reconstructed (estimation.recon.INPUT_NAMES; an env with reconstruction)",
+    "alarm": "the detector's alarm after the tick (0/1; an env with a detector)",
 }
 # ... per env step (leaves [B, n_ticks // ticks_per_step, ...]), at the step's start.
 STEP_FIELDS = {"obs": "the policy observation [24] a policy deciding at this step would see"}
@@ -173,6 +175,10 @@ def _tick_field(env, name, attack, before, after):
   if name == "alive":
     ok = jnp.all(jnp.isfinite(phys1.qpos)) & (sim1["nav"].phase != nav_lib.DONE)
     return ok & ~sim1["vehicle"]["hit"] if env.vehicle == "drone" else ok
+  if name == "x_rec":
+    return sim1["x_rec"]
+  if name == "alarm":
+    return sim1["det"].alarm
   assert name == "vel_nav", name
   _, vel_nav, _ = nav_lib.nav_step(env._nav_params(), sim0["nav"], before[2], sim1["ekf"].pos,
                                    env._vehicle_landed(sim0), env.config.tick_dt)

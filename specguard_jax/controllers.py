@@ -12,7 +12,9 @@ Built in:
                       one trained with pc (BuildContext.run_dir for the variant asked, see `run_for`).
   delorean            the "without recovery policy" ablation = DeLorean: residual detector, selective state
                       reconstruction, reactive mode with a zero residual policy: the autopilot flies on the
-                      reconstructed state.
+                      reconstructed state (the reconstruction mode: evaluate.py --recon, default "fused").
+  delorean_paper      the same with the paper's reconstruction (EnvConfig.recon_mode "paper": the fitted model
+                      rolled forward open loop from the checkpoint), whatever --recon says.
   fallback            DeLorean plus the rule-based, uncertainty-aware fallback (no learning, EnvConfig.recovery_rule
                       'fallback', specguard_jax.autopilot.fallback): while the alarm is up the navigator's setpoint
                       slows down with the reconstruction's position uncertainty, widens obstacle clearance and holds
@@ -216,6 +218,13 @@ def _delorean(ctx: BuildContext) -> Controller:
                     "reconstruction, the autopilot flies on the reconstructed state")
 
 
+def _delorean_paper(ctx: BuildContext) -> Controller:
+  c = _delorean(ctx)
+  return dataclasses.replace(c, name="delorean_paper", env_overrides=c.env_overrides + (("recon_mode", "paper"),),
+                             description="DeLorean with the paper's reconstruction: the fitted model rolled forward "
+                                         "open loop from the last trusted checkpoint for the compromised components")
+
+
 def _fallback(ctx: BuildContext) -> Controller:
   d = _delorean(ctx)
   return Controller("fallback", d.env_overrides + (("recovery_rule", "fallback"),), zero_policy, None,
@@ -249,6 +258,9 @@ register("no_protection", _no_protection, "the autopilot alone")
 register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)")
 register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)")
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
+register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop reconstruction (recon_mode paper)")
+
+
 register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")
 register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)")
 register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)")

@@ -291,6 +291,9 @@ def markdown(rep) -> str:
        "- No protection is its own twin, so its SVR is 100 % by construction: wherever a table quotes an SVR for "
        "no protection it is its share of missions under attack with any violation (column 'any viol.' for every "
        "controller).", ""]
+  if meta.get("recon_modes"):
+    L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
+        f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
   L += hard_markdown(ex.get("hard"))
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]

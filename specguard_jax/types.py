@@ -72,6 +72,7 @@ VEHICLES = ("drone", "rover")
 EKF_KERNELS = ("auto", "xla", "lanes")                  # EnvConfig.ekf_kernel (ekf_lanes.resolve_ekf_kernel)
 CONTROL_MODES = ("autopilot", "override", "reactive")   # envs.base.EnvConfig.control_mode
 DETECTORS = ("none", "residual", "oracle")              # envs.base.EnvConfig.detector
+RECON_MODES = ("fused", "paper")                         # EnvConfig.recon_mode (estimation.recon.ReconConfig.mode)
 REWARDS = ("compliance", "binary", "survival")           # survival: the FTC baseline's (specguard_jax.baselines.ftc)
 VARIANTS = ("rc", "pc")                                  # ppo.config.TrainConfig.variant (RC / PC SpecGuard)
 TRAIN_DETECTORS = tuple(d for d in DETECTORS if d != "none")   # a training run's phase-2 and held-out detectors

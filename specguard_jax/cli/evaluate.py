@@ -38,7 +38,7 @@ import subprocess
 import sys
 import time
 
-from specguard_jax.types import VEHICLES
+from specguard_jax.types import RECON_MODES, VEHICLES
 
 RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "specguard_no_recon", "suburban", "urban", "rover")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
@@ -77,6 +77,9 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--designed-rates", metavar="FILE|SENSOR=RATE,...",
                  help="designed campaign ramp rates (bias units / s): a designed_rates.json or gps=1.1,baro=0.25,...")
   p.add_argument("--hazard-lead", default="2,5", metavar="LO,HI", help="hazard campaign lead time range (s)")
+  p.add_argument("--recon", choices=RECON_MODES,
+                 help="state reconstruction mode of the controllers that reconstruct and do not fix one themselves "
+                      "(delorean, specguard_*; EnvConfig.recon_mode): fused (default) or paper")
   p.add_argument("--max-s", type=float, default=400.0, help="episode cap (s)")
   p.add_argument("--mission-s", help="LO,HI mission duration bounds (s) instead of the vehicle preset (small runs)")
   p.add_argument("--traj", type=int, default=2, help="missions per setting whose trajectories are recorded")
@@ -359,6 +362,8 @@ def main(argv=None) -> int:
   jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s)}
+    if args.recon:
+      base["recon_mode"] = args.recon
     if p["mission_s"]:
       mk = MissionConfig.drone if g["vehicle"] == "drone" else MissionConfig.rover
       base["mission"] = mk(min_duration_s=p["mission_s"][0], max_duration_s=p["mission_s"][1])
@@ -391,7 +396,7 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
-      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **base, **ctrl.overrides())))
+      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})))
   bar.show(f"compiling {len(jobs)} rollouts")
   compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
                             "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,
@@ -408,7 +413,8 @@ def main(argv=None) -> int:
     trajs[(gname, ctrl.name)] = traj
     grp["controllers"][ctrl.name] = {"description": ctrl.description,
                                      "env_overrides": {k: R.jsonable(v) for k, v in ctrl.env_overrides},
-                                     "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps}
+                                     "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps,
+                                     "recon_mode": env.config.recon_mode if env.config.reconstruction else None}
     results["rollouts"].append({"group": gname, "controller": ctrl.name, "missions": int(len(rec["complete"])),
                                 **timing})
     bar.step(f"{gname}: {ctrl.name} done")
@@ -426,7 +432,9 @@ def main(argv=None) -> int:
           "campaigns": list(p["campaigns"]), "hazard_lead_s": list(p["hazard_lead_s"]),
           "designed_rates": {x: r for g in p["groups"].values() for st in g["settings"]
                              if E.campaign_of(st.name) == "designed" for x, r in st.attack.ramp_rate},
-          "simulator": "specguard-jax MJX simulator (not AirSim)"}
+          "simulator": "specguard-jax MJX simulator (not AirSim)", "recon": args.recon or "fused",
+          "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
+                          for c, v in grp["controllers"].items()}}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
   report["meta"]["eval_wall_s"] = wall

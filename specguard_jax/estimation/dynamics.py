@@ -71,9 +71,12 @@ def derivatives(p: DynParams, s: DynState, u):
   return math3d.matvec(r, math3d.matvec(p.w_lin, phi_lin)) + G, math3d.matvec(p.w_ang, phi_ang)
 
 
-def step(p: DynParams, s: DynState, u, dt) -> DynState:
-  """One explicit step of dt (s): semi-implicit Euler on velocity/rate, exponential map on the attitude."""
+def step(p: DynParams, s: DynState, u, dt, specific_force=None) -> DynState:
+  """One explicit step of dt (s): semi-implicit Euler on velocity/rate, exponential map on the attitude.
+  specific_force: optional [3] body specific force (m/s^2) to use instead of the fitted one (the angular model stays)."""
   acc, alpha = derivatives(p, s, u)
+  if specific_force is not None:
+    acc = math3d.matvec(math3d.quat_to_rot(s.quat), specific_force) + G
   rate = s.rate + alpha * dt
   quat = math3d.normalize_quat(math3d.quat_mul(s.quat, math3d.rotvec_to_quat(0.5 * (s.rate + rate) * dt)))
   vel = s.vel + acc * dt

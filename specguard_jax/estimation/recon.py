@@ -23,6 +23,16 @@ then on runs a shadow EKF (the autopilot's own filter, ekf.ekf_step) on the UNCO
     (rover) uses a physical level-vehicle force instead of the fitted one (`_model_force`: it ran away);
 Selective output: only the components of x'_t that derive from a compromised sensor (SENSOR_DEPS) are replaced by
 the shadow estimate; the rest stays as measured (EKF). Everything is pure JAX, jittable and vmappable.
+
+The above is ReconConfig.mode "fused" (the default). Mode "paper" is the reconstruction as the SpecGuard paper
+(Sec. 4.5, App. A.4) and DeLorean describe it: a Checkpointer of trusted states and an Estimator that is the fitted
+system-identification model alone. When the alarm rises, the checkpoint `lag` entries before the newest is rolled
+forward through the model over the buffered commanded controls, and from then on the model is integrated OPEN LOOP
+over the commanded controls, every tick, with no correction from any sensor (`_paper_tick`). The compromised
+components of x'_t (SENSOR_DEPS of the diagnosis mask) are the model's; the uncompromised ones stay the autopilot
+EKF's / the readings' (selective output as above), and are the model's inputs for them at the next step. The checkpoint lag must cover the detector's delay, or the
+checkpoint already holds the attack (`check_lag`). The model's uncertainty grows with the time since the checkpoint
+(ReconState.ckpt_age; `_paper_variances`), and is carried in the trusted estimate's covariance (`recon_std`).
 """
 
 from __future__ import annotations
@@ -43,7 +53,7 @@ from specguard_jax.detection.detector import CHANNEL_SENSOR
 from specguard_jax.estimation import checkpointer as ck
 from specguard_jax.estimation import dynamics as dyn
 from specguard_jax.estimation import traces
-from specguard_jax.types import SENSOR_NAMES
+from specguard_jax.types import RECON_MODES, SENSOR_NAMES
 
 INPUT_NAMES = ("pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z", "acc_x", "acc_y", "acc_z",
                "roll", "pitch", "yaw", "rate_x", "rate_y", "rate_z")
@@ -93,7 +103,10 @@ def _unpack(v):
 class ReconConfig:
   """window: checkpoint ring size (ticks).  lag: checkpoint age used when the alarm rises (ticks; >= the detector's
   delay, < window).  n_controls: 4 (drone rotor thrusts) or 2 (rover throttle, steer).  ekf: the shadow EKF's
-  EKFConfig (the vehicle's, e.g. EKFConfig.drone()); None -> EKFConfig.drone()."""
+  EKFConfig (the vehicle's, e.g. EKFConfig.drone()); None -> EKFConfig.drone().
+  mode: "fused" (closed-loop shadow EKF on the uncompromised sensors) or "paper" (open-loop model roll-out from the
+  checkpoint; module docstring). The other fields below are the fused mode's, except window / lag / n_controls /
+  ekf / ground_drive / sticky_* (both) and paper_* (the paper mode's uncertainty model, `_paper_variances`)."""
   window: int = 50
   lag: int = 10
   n_controls: int = 4
@@ -126,6 +139,33 @@ class ReconConfig:
   # at full throttle (N), rolling resistance (N s/m), drag (N s^2/m^2), mass (kg); the rover's nominal values
   # (autopilot.ardurover.RoverParams, assets/rover.xml).
   ground_drive: tuple = (70.0, 3.0, 0.2, 10.0)
+  mode: str = "fused"
+  # Paper mode's model uncertainty (`_paper_variances`): the fitted model's training residuals (DynParams.rms_lin /
+  # rms_ang) act as white errors per tick; on top, a persistent specific-force error over one reconstruction: the
+  # per-episode randomisation the fit averages over (mass +-10 %, thrust gain +-8 %: uniform, ~0.7 m/s^2 at hover
+  # combined; drag +-30 %, wind), and a persistent angular-acceleration error (inertia +-10 % of the commanded torques).
+  paper_accel_bias_sigma: float = 0.2   # m/s^2 (after paper_calibrate; 0.7 without it)
+  paper_alpha_bias_sigma: float = 0.05  # rad/s^2
+  # The fitted model is the fleet's (fitted over randomised vehicles), the paper's / DeLorean's the vehicle's own: the
+  # paper mode identifies this vehicle's specific-force offset (body frame, m/s^2) from the model on the trusted
+  # ring entries up to the checkpoint (`_paper_force_bias`; the env's ring holds paper_calib_s of them before it).
+  paper_calibrate: bool = True
+  paper_calib_s: float = 2.0
+  # Body-rate clamp of the paper mode's model (rad/s): PX4's MC_ROLLRATE_MAX / MC_PITCHRATE_MAX 220 deg/s; the
+  # autopilot never commands more, and the fitted polynomial (|w| w terms) runs away to inf outside that envelope.
+  paper_rate_limit: float = 3.84
+  # ... and speed clamp (m/s): above the envelope (PX4 MPC_XY_VEL_MAX 12 m/s horizontally, MPC_Z_VEL_MAX_UP 3 m/s);
+  # the fitted |v| v and u |v| terms feed back positively outside the training data (the rover's did, `_model_force`).
+  paper_speed_limit: float = 20.0
+
+  def __post_init__(self):
+    if self.mode not in RECON_MODES:
+      raise ValueError(f"unknown reconstruction mode {self.mode!r}; choose one of {RECON_MODES}")
+
+  @property
+  def lag_ticks(self) -> int:
+    """Ticks between the checkpoint rolled forward and the tick before the alarm (the ring holds window entries)."""
+    return min(self.lag, self.window - 1)
 
   def ekf_cfg(self):
     return dataclasses.replace(self.ekf or ekf_lib.EKFConfig.drone(), gyro_bias_limit=self.model_rate_limit,
@@ -149,7 +189,9 @@ class ReconState:
   first), gage [] s since it, f_sum [3] the model's specific force integrated since it (m/s), acc_w [3] EMA of the
   world acceleration between GPS samples (m/s^2), f_lp [3] EMA of the mean model specific force over the same
   intervals (m/s^2, body).  gyro_t: [] s the gyroscope has been blamed without a break in this alarm
-  (`sticky_after_s`)."""
+  (`sticky_after_s`).  model: dyn.DynState, the paper mode's open-loop model state (this tick's; its initial value
+  outside the alarm; unused by the fused mode).  ckpt_age: [] s since the checkpoint the reconstruction started from
+  (the replay's length plus the alarm's; 0 while inactive)."""
   ckpt: ck.CheckpointState
   shadow: Any
   rate: jnp.ndarray
@@ -163,6 +205,8 @@ class ReconState:
   acc_w: jnp.ndarray
   f_lp: jnp.ndarray
   gyro_t: jnp.ndarray
+  model: Any
+  ckpt_age: jnp.ndarray
 
 
 def input_vector(ekf_state, readings) -> jax.Array:
@@ -190,7 +234,30 @@ def recon_init(cfg: ReconConfig, ekf_state) -> ReconState:
                     active=jnp.zeros((), bool), since=jnp.zeros(()), suspect=jnp.zeros((), bool),
                     blamed=jnp.zeros((len(SENSOR_NAMES),), jnp.float32), gvel=jnp.full(3, jnp.nan, jnp.float32),
                     gage=jnp.zeros(()), f_sum=jnp.zeros(3), acc_w=jnp.zeros(3), f_lp=jnp.zeros(3),
-                    gyro_t=jnp.zeros(()))
+                    gyro_t=jnp.zeros(()), model=_model_init(), ckpt_age=jnp.zeros(()))
+
+
+def _model_init() -> dyn.DynState:
+  return dyn.DynState(pos=jnp.zeros(3), vel=jnp.zeros(3), quat=jnp.array([1.0, 0.0, 0.0, 0.0]), rate=jnp.zeros(3))
+
+
+def check_lag(cfg: ReconConfig, delay_s: float, dt: float) -> None:
+  """One-line ValueError unless the checkpoint lag (cfg.lag_ticks ticks of dt s) covers a detection delay of
+  `delay_s` s: the paper mode rolls forward from that checkpoint with no sensor correction, so one that the attack
+  had already reached when it was recorded would be replayed as trusted."""
+  if cfg.lag_ticks * dt + 1e-9 < delay_s:
+    raise ValueError(f"reconstruction checkpoint lag {cfg.lag_ticks} ticks x {dt} s = {cfg.lag_ticks * dt:.3g} s is "
+                     f"shorter than the detector's delay {delay_s:.3g} s (raise ReconConfig.lag / window)")
+
+
+def recon_std(state: ReconState) -> jax.Array:
+  """[4] 1-sigma per axis of the estimate the autopilot flies on (ReconState.shadow: the reconstruction's while the
+  alarm is up, else the autopilot EKF's): position (m), velocity (m/s), tilt (rad), yaw (rad); RMS over the axes of
+  each group, from its covariance (fused: the shadow filter's; paper: the EKF's with the model-propagated components'
+  rows replaced by `_paper_variances`)."""
+  d = ekf_lib.p_diag(state.shadow.P)
+  g = lambda sl: jnp.sqrt(jnp.mean(d[..., sl], axis=-1))
+  return jnp.stack([g(ekf_lib.POS), g(ekf_lib.VEL), g(slice(6, 8)), g(slice(8, 9))], axis=-1)
 
 
 def _gravity_ref(cfg: ReconConfig, state: ReconState, readings, f_model, dt):
@@ -371,6 +438,9 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   ring, (entry, replay_controls, oldest) = jax.lax.optimization_barrier(
       (state.ckpt, (entry, replay_controls, oldest)))
   e_old = _unpack(oldest)   # oldest trusted entry
+  if cfg.mode == "paper":
+    return _paper_tick(cfg, params, state, ekf_state, readings, controls, mask, alarm, dt, x_meas, rising, falling,
+                       start, entry, replay_controls, ring)
   with jax.named_scope("recon_replay"):   # (a profiling scope: bench/gpu_profile.py's stages)
     shadow0, rate0 = _start(cfg, params, start, entry, replay_controls, ekf_state, dt)
   shadow = jax.tree.map(lambda a, b: jnp.where(rising, a, b), shadow0, state.shadow)
@@ -447,14 +517,7 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
   x_rec = jnp.where(use, x_shadow, x_meas)
 
   # Is a compromised aiding sensor still far from the shadow estimate (the attack still on)?
-  z = ekf_lib.normalized_innovations(cfg.ekf_cfg(), shadow, readings)
-  fresh = jnp.stack([readings.gps_fresh] * 6 + [readings.baro_fresh, readings.mag_fresh] + [readings.flow_fresh] * 2
-                    + [jnp.zeros(())]) > 0.5
-  sampled = (math3d.matvec(jnp.asarray(_CHANNEL_MASK), mask.astype(jnp.float32)) > 0) & fresh
-  bad = jnp.any(sampled & (z > cfg.consistency_sigma))
-  # (held between samples; a diagnosis that changes drops what the previous mask's sensors said)
-  same = jnp.all(mask == (state.blamed > 0))
-  suspect = alarm & jnp.where(jnp.any(sampled), bad, state.suspect & same)
+  suspect = _suspect(cfg, state, shadow, readings, mask, alarm)
 
   ckpt = ck.ckpt_update(ring, _entry(ekf_state, readings), controls, alarm)
   # On the hand-back tick the trusted estimate is still the shadow's (the env re-syncs the autopilot's EKF to it,
@@ -478,7 +541,177 @@ def recon_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_s
                    rate=jnp.where(alarm, rate_new, x_meas[RATE]), active=alarm,
                    since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
                    blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0),
-                   gyro_t=jnp.where(alarm & mask[gi], state.gyro_t + dt, 0.0))
+                   gyro_t=jnp.where(alarm & mask[gi], state.gyro_t + dt, 0.0), model=state.model,
+                   ckpt_age=_ckpt_age(cfg, state, start, alarm, rising, dt))
+  return new, x_rec, trusted, trusted_rd
+
+
+def _suspect(cfg: ReconConfig, state: ReconState, est, readings, mask, alarm):
+  """[] bool: a compromised (`mask` [6] bool) aiding sensor's latest fresh sample is more than consistency_sigma
+  innovation sigmas from the estimate `est` (EKFState; its covariance P), i.e. the attack is still on; held between
+  samples; False with the alarm down."""
+  z = ekf_lib.normalized_innovations(cfg.ekf_cfg(), est, readings)
+  fresh = jnp.stack([readings.gps_fresh] * 6 + [readings.baro_fresh, readings.mag_fresh] + [readings.flow_fresh] * 2
+                    + [jnp.zeros(())]) > 0.5
+  sampled = (math3d.matvec(jnp.asarray(_CHANNEL_MASK), mask.astype(jnp.float32)) > 0) & fresh
+  bad = jnp.any(sampled & (z > cfg.consistency_sigma))
+  # (held between samples; a diagnosis that changes drops what the previous mask's sensors said)
+  same = jnp.all(mask == (state.blamed > 0))
+  return alarm & jnp.where(jnp.any(sampled), bad, state.suspect & same)
+
+
+def _ckpt_age(cfg: ReconConfig, state: ReconState, start, alarm, rising, dt):
+  """[] s since the checkpoint (ReconState.ckpt_age): on the rising tick the replay from ordered index `start` to the
+  newest entry (the previous tick) and this tick, (window - start) ticks; then + dt per tick of the alarm."""
+  age0 = (cfg.window - start).astype(jnp.float32) * dt
+  return jnp.where(alarm, jnp.where(rising, age0, state.ckpt_age + dt), 0.0)
+
+
+def _paper_variances(cfg: ReconConfig, params: dyn.DynParams, tau, p0, dt):
+  """Variances of the paper mode's open-loop model state `tau` s after the checkpoint: [9] error-state rows
+  pos x/y/z (m^2), vel x/y/z (m^2/s^2), tilt x/y, yaw (rad^2).
+
+  p0 [15]: the variances at the checkpoint (the autopilot EKF's diagonal). Error sources, independent: the fitted
+  model's residuals (rms_lin m/s^2, rms_ang rad/s^2: RMS over the axes) white per tick of dt, so the n-fold integral
+  of a white error of intensity q = sigma^2 dt has variance q tau^(2n-1) / ((n-1)!^2 (2n-1)); the persistent errors
+  paper_accel_bias_sigma / paper_alpha_bias_sigma (integral n of a constant: tau^n / n!); the checkpoint's own
+  velocity / tilt errors; a tilt error theta tilts the thrust and so accelerates the vehicle by g theta horizontally.
+  All grow with tau (tau^2 .. tau^8 terms): an upper-bound-like spread, not a filter's."""
+  g = dyn.GRAVITY
+  qa = jnp.mean(params.rms_lin ** 2) * dt
+  qw = jnp.mean(params.rms_ang ** 2) * dt
+  ba, bw = cfg.paper_accel_bias_sigma, cfg.paper_alpha_bias_sigma
+  t = jnp.maximum(tau, 0.0)
+  att = qw * t ** 3 / 3.0 + (bw * t ** 2 / 2.0) ** 2                                   # from the angular model error
+  tilt0 = jnp.mean(p0[6:8])
+  vel = (p0[3:6] + qa * t + (ba * t) ** 2
+         + g ** 2 * (tilt0 * t ** 2 + qw * t ** 5 / 20.0 + (bw * t ** 3 / 6.0) ** 2))
+  pos = (p0[0:3] + p0[3:6] * t ** 2 + qa * t ** 3 / 3.0 + (ba * t ** 2 / 2.0) ** 2
+         + g ** 2 * (tilt0 * t ** 4 / 4.0 + qw * t ** 7 / 252.0 + (bw * t ** 4 / 24.0) ** 2))
+  return jnp.concatenate([pos, vel, p0[6:9] + att])
+
+
+def _paper_rate(cfg: ReconConfig, rate):
+  """The paper mode's model body rate: `_model_rate`, clamped to paper_rate_limit (rad/s)."""
+  return jnp.clip(_model_rate(cfg, rate), -cfg.paper_rate_limit, cfg.paper_rate_limit)
+
+
+def _paper_force(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, f_bias):
+  """[3] the paper mode's model body specific force (m/s^2) at state s under controls u: the fitted one (a ground
+  vehicle's: `_model_force`) plus the vehicle's identified offset f_bias [3]."""
+  return _model_force(cfg, dyn.specific_force(params, s, u), s, u) + f_bias
+
+
+def _paper_step(cfg: ReconConfig, params: dyn.DynParams, s: dyn.DynState, u, dt, f_bias) -> dyn.DynState:
+  s = dyn.step(params, s, u, dt, specific_force=_paper_force(cfg, params, s, u, f_bias))
+  vel = s.vel * jnp.minimum(1.0, cfg.paper_speed_limit / jnp.maximum(math3d.norm(s.vel), 1e-6))
+  return s.replace(vel=vel, rate=_paper_rate(cfg, s.rate))
+
+
+def _paper_force_bias(cfg: ReconConfig, params: dyn.DynParams, ring: ck.CheckpointState, start):
+  """[3] mean body-frame specific force measured minus the model's over the trusted ring entries up to the checkpoint
+  (ordered index `start`; zeros without paper_calibrate or data). Entry j's world acceleration was produced by the
+  controls stored with it at the state of entry j - 1 (as the fit pairs them, dynamics._fit)."""
+  if not cfg.paper_calibrate:
+    return jnp.zeros(3)
+  states, controls, valid = ck.ckpt_ordered(ring)
+  e = _unpack(states)
+  prev = dyn.DynState(pos=e["pos"][:-1], vel=e["vel"][:-1], quat=e["quat"][:-1], rate=e["rate"][:-1])
+  f_mod = jax.vmap(lambda st, u: _paper_force(cfg, params, st, u, jnp.zeros(3)))(prev, controls[1:])
+  r = jax.vmap(math3d.quat_to_rot)(e["quat"][1:])
+  f_meas = jnp.einsum("nji,nj->ni", r, e["acc"][1:] - dyn.G)
+  j = jnp.arange(1, states.shape[0])
+  w = (valid[1:] & valid[:-1] & (j <= start)).astype(jnp.float32)
+  return jnp.sum(w[:, None] * (f_meas - f_mod), 0) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _paper_start(cfg: ReconConfig, params: dyn.DynParams, start, entry, controls, dt, f_bias) -> dyn.DynState:
+  """The model state at the PREVIOUS tick: the checkpoint entry at ordered index `start` rolled forward over the
+  controls stored after it ([lag, n_u]; see `_ring_reads`), as `_start` for the fused mode."""
+  w = cfg.window
+  e = _unpack(entry)
+  s0 = dyn.DynState(pos=e["pos"], vel=e["vel"], quat=e["quat"], rate=_paper_rate(cfg, e["rate"]))
+
+  def body(i, s):
+    s_new = _paper_step(cfg, params, s, controls[i], dt, f_bias)
+    return jax.tree.map(lambda a, b: jnp.where(start + 1 + i <= w - 1, a, b), s_new, s)
+
+  lag = controls.shape[0]
+  return jax.lax.fori_loop(0, lag, body, s0, unroll=max(lag, 1) if jax.default_backend() != "cpu" else 1)
+
+
+def _paper_tick(cfg: ReconConfig, params: dyn.DynParams, state: ReconState, ekf_state, readings, controls, mask,
+                alarm, dt, x_meas, rising, falling, start, entry, replay_controls, ring):
+  """recon_tick of the paper mode (module docstring); the same inputs and outputs.
+
+  The model state (ReconState.model) is this tick's: on the rising tick the checkpoint rolled forward to the previous
+  tick (`_paper_start`, as `_start` for the fused mode), then one model step over `controls` (which moved the vehicle
+  from the previous tick to this one); each later tick of the alarm one more step. The model is the fitted one with
+  the vehicle's specific-force offset identified before the checkpoint (`_paper_force_bias`) and the clamps
+  paper_rate_limit / paper_speed_limit. Selective (DeLorean): each step's uncompromised components are the autopilot EKF's, so e.g.
+  under a GPS attack position and velocity are integrated open loop from the model's thrust along the EKF's attitude;
+  the compromised ones get no correction from any sensor until the hand-back. x'_t's model components: pos, vel, the
+  world acceleration R f + g of the model's specific force f at this state and controls, Euler angles, body rate.
+  The trusted estimate (what the autopilot flies on) is the autopilot EKF's with the compromised components replaced
+  by the model's (Euler angles recomposed into the quaternion), the replaced sensors' bias states at the checkpoint's
+  (trusted) values, and the covariance rows of the replaced components at `_paper_variances`; the trusted readings
+  have a compromised gyroscope / accelerometer replaced by the model's rate / specific force (plus those bias
+  states) and a compromised aiding sensor's sample dropped (fresh flag cleared). Hand-back (the tick the alarm falls):
+  the trusted estimate is still the reconstruction under the last diagnosis, with its model-grown covariance and
+  fresh gating timers, for the env to re-sync the autopilot's EKF to (the returning sensors then pull it back
+  through the ordinary gates); the readings are the sensors' again."""
+  gi, ai = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("accel")
+  on = alarm | falling
+  f_bias = _paper_force_bias(cfg, params, ring, start)
+  with jax.named_scope("recon_replay"):
+    s0 = _paper_start(cfg, params, start, entry, replay_controls, dt, f_bias)
+  s_prev = jax.tree.map(lambda a, b: jnp.where(rising, a, b), s0, state.model)
+  s = _paper_step(cfg, params, s_prev, controls, dt, f_bias)    # the model's prediction of this tick
+  use_mask = jnp.where(alarm, mask, state.blamed > 0)          # hand-back: the last alarm tick's diagnosis
+  dep = dependent_components(use_mask) & on
+  # Selective: the uncompromised components are the EKF's, also as the model's starting point for the next tick.
+  ea = dep[EULER]
+  quat = jnp.where(jnp.all(ea), s.quat, jnp.where(
+      jnp.any(ea), math3d.euler_to_quat(jnp.where(ea, math3d.quat_to_euler(s.quat), x_meas[EULER])), ekf_state.quat))
+  s = dyn.DynState(pos=jnp.where(dep[POS], s.pos, ekf_state.pos), vel=jnp.where(dep[VEL], s.vel, ekf_state.vel),
+                   quat=quat, rate=jnp.where(dep[RATE], s.rate, x_meas[RATE]))
+  f_b = _paper_force(cfg, params, s, controls, f_bias)
+  x_model = jnp.concatenate([s.pos, s.vel, math3d.matvec(math3d.quat_to_rot(s.quat), f_b) + dyn.G,
+                             math3d.quat_to_euler(s.quat), s.rate])
+  x_rec = jnp.where(dep, x_model, x_meas)
+
+  # trusted estimate: the EKF's with the replaced components
+  e_ck = _unpack(entry)
+  gyro_bias = jnp.where(use_mask[gi], e_ck["gyro_bias"], ekf_state.gyro_bias)
+  accel_bias = jnp.where(use_mask[ai], e_ck["accel_bias"], ekf_state.accel_bias)
+  age = _ckpt_age(cfg, state, start, alarm, rising, dt)
+  var = _paper_variances(cfg, params, jnp.where(falling, state.ckpt_age + dt, age), ekf_lib.p_diag(ekf_state.P),
+                         dt)
+  rows = jnp.concatenate([dep[POS], dep[VEL], jnp.stack([ea[0] | ea[1]] * 2), ea[2:3]])
+  P = ekf_state.P
+  for i in range(9):   # static rows: elementwise resets in either P layout
+    P = ekf_lib.reset_block(P, [i], var[i], rows[i])
+  zero = jnp.zeros(())
+  est = ekf_state.replace(pos=x_rec[POS], vel=x_rec[VEL], quat=quat, gyro_bias=gyro_bias, accel_bias=accel_bias, P=P,
+                          gps_pos_age=jnp.where(falling, zero, ekf_state.gps_pos_age),
+                          gps_vel_age=jnp.where(falling, zero, ekf_state.gps_vel_age),
+                          hgt_age=jnp.where(falling, zero, ekf_state.hgt_age))
+  trusted = jax.tree.map(lambda a, b: jnp.where(on, a, b), est, ekf_state)
+  gps, mag, baro, flow = (mask[SENSOR_NAMES.index(n)] for n in ("gps", "mag", "baro", "flow"))
+  rd = readings.replace(
+      gyro=jnp.where(mask[gi], s.rate + gyro_bias, readings.gyro),
+      accel=jnp.where(mask[ai], f_b + accel_bias, readings.accel),
+      gps_fresh=jnp.where(gps, zero, readings.gps_fresh), mag_fresh=jnp.where(mag, zero, readings.mag_fresh),
+      baro_fresh=jnp.where(baro, zero, readings.baro_fresh), flow_fresh=jnp.where(flow, zero, readings.flow_fresh))
+  trusted_rd = jax.tree.map(lambda a, b: jnp.where(alarm, a, b), rd, readings)
+  suspect = _suspect(cfg, state, trusted, readings, mask, alarm)
+  ckpt = ck.ckpt_update(ring, _entry(ekf_state, readings), controls, alarm)
+  new = ReconState(ckpt=ckpt, shadow=trusted, rate=jnp.where(alarm, s.rate, x_meas[RATE]), active=alarm,
+                   since=jnp.where(alarm, state.since + dt, 0.0), suspect=suspect,
+                   blamed=jnp.where(alarm, mask.astype(jnp.float32), 0.0), gvel=state.gvel, gage=state.gage,
+                   f_sum=state.f_sum, acc_w=state.acc_w, f_lp=state.f_lp,
+                   gyro_t=jnp.where(alarm & mask[gi], state.gyro_t + dt, 0.0),
+                   model=jax.tree.map(lambda a, b: jnp.where(alarm, a, b), s, _model_init()), ckpt_age=age)
   return new, x_rec, trusted, trusted_rd
 
 
