@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
-import json
 import os
 from typing import Any, Callable
 
@@ -130,9 +129,8 @@ def load_run_config(run_dir: str):
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
-    with open(path) as f:
-      return config_lib.from_dict(json.load(f)).with_env(ekf_kernel="xla").validate()
-  except (OSError, ValueError, TypeError) as e:
+    return config_lib.load_config_file(path).with_env(ekf_kernel="xla").validate()
+  except ValueError as e:
     raise NotAvailable(f"{path}: {' '.join(str(e).split())}") from None
 
 
