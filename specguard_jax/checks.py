@@ -13,11 +13,12 @@ def _fail(key: str, value, allowed: str):
 
 
 def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
+  lo_s, hi_s = (f"{x:g}" if isinstance(x, float) else str(x) for x in (lo, hi))
   if hi is None:
-    return f"> {lo:g}" if lo_open else f">= {lo:g}"
+    return f"> {lo_s}" if lo_open else f">= {lo_s}"
   if lo is None:
-    return f"< {hi:g}" if hi_open else f"<= {hi:g}"
-  return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    return f"< {hi_s}" if hi_open else f"<= {hi_s}"
+  return f"{'(' if lo_open else '['}{lo_s}, {hi_s}{')' if hi_open else ']'}"
 
 
 def number(key: str, value, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,

@@ -198,7 +198,7 @@ def load_run_config(run_dir: str) -> TrainConfig:
   try:
     return load_config_file(path).validate()
   except ValueError as e:
-    raise ValueError(f"cannot resume {run_dir}: {e}") from None
+    raise ValueError(f"cannot resume: {e}" if path in str(e) else f"cannot resume: {path}: {e}") from None
 
 
 def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: bool = True,
