@@ -169,8 +169,7 @@ class TrainConfig:
     env = self.env
     if not isinstance(env, EnvConfig):
       raise ValueError(f"env must be an envs.base.EnvConfig, got {type(env).__name__}")
-    check_env_values(env, "env.")
-    self._check_values()
+    self.check_values()
     if env.control_mode != EnvConfig.control_mode:
       raise ValueError(f"env.control_mode is set per phase from variant; leave it {EnvConfig.control_mode!r} "
                        f"(got {env.control_mode!r})")
@@ -201,7 +200,6 @@ class TrainConfig:
     if self.phase1_steps + self.phase2_steps == 0:
       raise ValueError("phase1_steps and phase2_steps must not both be 0")
     for agent, p in (("sg", self.sg), ("aa", self.aa)):
-      p.validate(agent)
       if (self.num_envs * self.unroll_length) % p.num_minibatches:
         raise ValueError(f"num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible by "
                          f"{agent}.num_minibatches ({p.num_minibatches})")
@@ -209,9 +207,13 @@ class TrainConfig:
       env_config(self, phase).validate()
     return self
 
-  def _check_values(self):
-    """Ranges and types of the numeric and list fields (one-line ValueError naming the key, the value and what is
-    allowed), before the checks that combine fields compare them."""
+  def check_values(self) -> "TrainConfig":
+    """Ranges and types of every field on its own, env's and the agents' included (one-line ValueError naming the
+    key, the value and what is allowed): what `validate` checks first, before the checks that combine fields, and
+    what a config file is checked for as it loads (load_config_file), so the error names the file."""
+    if not isinstance(self.env, EnvConfig):
+      raise ValueError(f"env must be an envs.base.EnvConfig, got {type(self.env).__name__}")
+    check_env_values(self.env, "env.")
     checks.integer("num_envs", self.num_envs, 1, MAX_NUM_ENVS)
     for name in ("unroll_length", "iters_per_call", "alternate_iters", "converge_window"):
       checks.integer(name, getattr(self, name), 1)
@@ -235,6 +237,8 @@ class TrainConfig:
     for name in ("sg", "aa"):
       if not isinstance(getattr(self, name), PPOConfig):
         raise ValueError(f"{name} must be a PPOConfig, got {type(getattr(self, name)).__name__}")
+      getattr(self, name).validate(name)
+    return self
 
   @property
   def steps_per_iter(self) -> int:
@@ -362,6 +366,6 @@ def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
   if not isinstance(d, dict):
     raise ValueError(f"config file {path} must hold a JSON object, got a JSON {type(d).__name__}")
   try:
-    return from_dict(d, base)
+    return from_dict(d, base).check_values()
   except ValueError as e:
     raise ValueError(f"config file {path}: {e}") from None
