@@ -151,6 +151,22 @@ def test_evaluate_bad_input_is_one_line_exit_2_nothing_written(argv, needle, tmp
   _run_case(evaluate_cli, argv, needle, tmp, capsys, "evaluate.py")
 
 
+def test_default_suite_still_skips_a_controller_without_its_run(tmp, monkeypatch, capsys):
+  """Not asked for by name, SpecGuard without a run is reported as not run (the report says why) and the evaluation
+  goes on: it reaches the compile of the controllers that can run."""
+  class Reached(Exception):
+    pass
+
+  def precompile(jobs):
+    raise Reached([j["env"] for j in jobs])
+  monkeypatch.setattr(evaluation, "make_env", lambda *a, **k: "env")
+  monkeypatch.setattr(evaluation, "precompile", precompile)
+  with pytest.raises(Reached):
+    evaluate_cli.main(["--out", str(tmp / "out"), "--no-progress"])
+  assert capsys.readouterr().err == ""
+  assert not (tmp / "out").exists()
+
+
 def test_activations_are_the_networks():
   from specguard_jax.ppo import networks
   assert tuple(networks.ACTIVATIONS) == config.ACTIVATIONS
