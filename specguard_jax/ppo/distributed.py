@@ -28,6 +28,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from specguard_jax import checks
+
 AXIS = "data"
 
 
@@ -92,6 +94,7 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
   every 10 s); after timeout_s s calls give_up(one-line reason), which must not return: jax itself would abort the
   whole process with a C++ fatal error and a stack trace a little later (its timeout is set beyond ours), and a
   thread cannot interrupt the native call, so the default prints the reason on stderr and exits with status 2."""
+  checks.number("--coordinator-timeout", timeout_s, 1)
   if coordinator is None and num_processes is None and process_id is None:
     env_addr = os.environ.get("JAX_COORDINATOR_ADDRESS")
     if not env_addr:
@@ -106,8 +109,6 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     raise ValueError(f"--num-processes must be >= 1, got {num_processes}")
   if not 0 <= process_id < num_processes:
     raise ValueError(f"--process-id must be in [0, {num_processes}), got {process_id}")
-  if not timeout_s >= 1:
-    raise ValueError(f"the coordinator timeout must be >= 1 s, got {timeout_s}")
   if process_id == 0:
     check_port_free(port, f"--coordinator {coordinator}")
   _join(coordinator, (host, port, num_processes, process_id), timeout_s, log, give_up)
