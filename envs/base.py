@@ -32,6 +32,7 @@ from envs import missions as missions_lib
 from envs import worlds as worlds_lib
 from specguard_jax import assets
 from specguard_jax import attacks as attacks_lib
+from specguard_jax import checks
 from specguard_jax import detection as detection_lib
 from specguard_jax import ekf as ekf_lib
 from specguard_jax import ekf_lanes
@@ -160,6 +161,7 @@ class EnvConfig:
   unroll_ticks: bool = False
 
   def validate(self):
+    check_env_values(self)
     ekf_lanes.resolve_ekf_kernel(self.ekf_kernel)
     for w in (self.world,) + tuple(self.worlds):
       if w not in worlds_lib.PRESETS:
@@ -199,6 +201,20 @@ def tree_where(cond, a, b):
     c = jnp.reshape(cond, cond.shape + (1,) * (x.ndim - cond.ndim))
     return jnp.where(c, x, y)
   return jax.tree.map(sel, a, b)
+
+
+def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
+  """Ranges and types of EnvConfig's numeric, flag and list fields (one-line ValueError naming prefix + the field, the
+  value and what is allowed); EnvConfig.validate runs it first, TrainConfig.validate with prefix 'env.'."""
+  checks.sequence(f"{prefix}worlds", cfg.worlds)
+  for name in ("tick_dt", "max_episode_s", "stall_s"):
+    checks.number(prefix + name, getattr(cfg, name), 0, lo_open=True)
+  checks.integer(f"{prefix}ticks_per_step", cfg.ticks_per_step, 1)
+  for name in ("clearance", "critical_weight", "detector_delay"):
+    checks.number(prefix + name, getattr(cfg, name), 0)
+  for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
+               "ekf_records", "unroll_ticks"):
+    checks.one_of(prefix + name, getattr(cfg, name), (True, False))
 
 
 def check_physics_options(mj_model: mujoco.MjModel, name: str) -> None:

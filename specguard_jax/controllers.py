@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
-import json
 import os
 from typing import Any, Callable
 
@@ -77,14 +76,20 @@ class BuildContext:
 
 
 _REGISTRY: dict[str, tuple[Callable[[BuildContext], Controller], str]] = {}
+_CHECKS: dict[str, Callable[[BuildContext], Any]] = {}
 _LOADED_EXTRAS = False
 
 
-def register(name: str, builder: Callable[[BuildContext], Controller], description: str = "") -> None:
-  """Register (or replace) a controller builder under `name`."""
+def register(name: str, builder: Callable[[BuildContext], Controller], description: str = "",
+             check: Callable[[BuildContext], Any] | None = None) -> None:
+  """Register (or replace) a controller builder under `name`. check(ctx): raises NotAvailable when the controller
+  cannot be built in ctx, cheaply (reading files only, no training, no env); `check()` runs it."""
   if not name or not name.replace("_", "").isalnum():
     raise ValueError(f"controller name must be alphanumeric/underscore, got {name!r}")
   _REGISTRY[name] = (builder, description)
+  _CHECKS.pop(name, None)
+  if check is not None:
+    _CHECKS[name] = check
 
 
 def _load_extras() -> None:
@@ -118,6 +123,15 @@ def build(name: str, ctx: BuildContext) -> Controller:
   return c
 
 
+def check(name: str, ctx: BuildContext) -> None:
+  """Raises NotAvailable (its reason) when controller `name` cannot be built in ctx, as far as its registered cheap
+  check tells (evaluate.py runs it up front for the controllers asked for by name); no check: assumed buildable."""
+  if name not in available():
+    raise ValueError(f"unknown controller {name!r}; choose from {', '.join(available())}")
+  if name in _CHECKS:
+    _CHECKS[name](ctx)
+
+
 def zero_policy(params, obs):
   """'Fly the autopilot's own setpoint': a zero velocity setpoint (or zero residual) [B, 3]."""
   del params
@@ -136,10 +150,10 @@ def load_run_config(run_dir: str):
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
-    with open(path) as f:
-      return config_lib.from_dict(json.load(f)).with_env(ekf_kernel="xla").validate()
-  except (OSError, ValueError, TypeError) as e:
-    raise NotAvailable(f"{path}: {' '.join(str(e).split())}") from None
+    return config_lib.load_config_file(path).with_env(ekf_kernel="xla").validate()
+  except ValueError as e:
+    msg = " ".join(str(e).split())
+    raise NotAvailable(msg if path in msg else f"{path}: {msg}") from None
 
 
 def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
@@ -254,13 +268,16 @@ def _binary(ctx: BuildContext) -> Controller:
   return specguard_from_run("specguard_binary", d, description=f"SpecGuard trained with the binary reward ({d})")
 
 
+# The SpecGuard builders only read their run's files (config.json, policy.msgpack): each is its own cheap check.
 register("no_protection", _no_protection, "the autopilot alone")
-register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)")
-register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)")
+register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)",
+         check=_specguard("rc"))
+register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.py run, variant pc)",
+         check=_specguard("pc"))
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
 register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop reconstruction (recon_mode paper)")
 
 
 register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")
-register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)")
-register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)")
+register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)", check=_no_recon)
+register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)", check=_binary)

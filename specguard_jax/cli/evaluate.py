@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
+import math
 import os
 import subprocess
 import sys
@@ -332,6 +333,53 @@ def designed_settings(p: dict, group: dict, mission, max_s: float) -> tuple:
   return E.campaign_settings(("designed",), sensors, designed_rates=rates)
 
 
+MAX_MISSIONS = 1 << 20   # missions per setting: a larger count is a typo (1000 is the GPU default)
+
+
+def check_up_front(args, p: dict) -> None:
+  """Checks of the flags and of the plan `p` made before anything is built (one-line ValueError): numbers finite and
+  in range, a list flag given empty, the output directory writable, every --runs directory a loadable run, and every
+  controller asked for by name (--controllers) buildable as far as its cheap check tells (controllers.check); the
+  default suite may still skip one, with the reason in the report."""
+  from specguard_jax import controllers as C
+  from specguard_jax.cli import preflight
+  if not math.isfinite(args.max_s):
+    raise ValueError(f"--max-s {args.max_s} must be a finite number of seconds > 0")
+  if p["mission_s"] and not all(math.isfinite(x) for x in p["mission_s"]):
+    raise ValueError(f"--mission-s {args.mission_s!r} must be finite seconds")
+  if args.missions is not None and args.missions > MAX_MISSIONS:
+    raise ValueError(f"--missions {args.missions} is not allowed; allowed: 1 to {MAX_MISSIONS}")
+  if not 0 <= args.seed <= 2**32 - 1:
+    raise ValueError(f"--seed {args.seed} is not allowed; allowed: 0 to {2**32 - 1}")
+  if args.traj < 0:
+    raise ValueError(f"--traj must be >= 0, got {args.traj}")
+  for flag in ("controllers", "worlds", "sensors"):
+    if getattr(args, flag) is not None and not _csv(getattr(args, flag)):
+      raise ValueError(f"--{flag} {getattr(args, flag)!r} names none; leave the flag out for the default")
+  preflight.check_output_dir(p["out"], "--out" if args.out else "--out (default)")
+  for name, d in p["runs"].items():
+    try:
+      C.load_run_config(d)
+    except C.NotAvailable as e:
+      raise ValueError(f"--runs {name}: {e}") from None
+  ctx = p["groups"]["main"]["ctx"]
+  for name in _csv(args.controllers):
+    try:
+      C.check(name, ctx)
+    except C.NotAvailable as e:
+      raise ValueError(f"--controllers {name} cannot run: {e}") from None
+
+
+def requested_not_run(args, not_run: dict) -> str | None:
+  """The error when a controller asked for by name (--controllers, or a --runs run flown in its own group) could not
+  be built after all (its builder raised), else None."""
+  asked = set(_csv(args.controllers)) | {"specguard"}
+  for key, why in not_run.items():
+    if key.split("/", 1)[1] in asked:
+      return f"controller {key} cannot run: {why}"
+  return None
+
+
 def _backend() -> str:
   import jax
   return jax.default_backend()
@@ -342,6 +390,7 @@ def main(argv=None) -> int:
   t_start = time.time()
   try:
     p = plan(args)
+    check_up_front(args, p)
     from specguard_jax import compile_cache
     compile_cache.enable(args.compile_cache)
   except ValueError as e:
@@ -397,6 +446,10 @@ def main(argv=None) -> int:
         bar.step(f"{gname}: {label} not run")
         continue
       jobs.append((gname, ctrl, E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})))
+  refused = requested_not_run(args, results["not_run"])
+  if refused:
+    bar.close()
+    return _fail(refused)
   bar.show(f"compiling {len(jobs)} rollouts")
   compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
                             "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,

@@ -54,16 +54,35 @@ CONFIG_DEST = "config:"
 """Prefix of the argparse dest of a flag that sets a config key: dest 'config:env.worlds' sets env.worlds."""
 
 
+class _Parser(argparse.ArgumentParser):
+  """train.py's parser: a bad flag is one line on stderr (exit 2), without the usage block. run_flags: {dest: flag}
+  of the flags that change what a run trains (refused with --resume, whose config.json fixes the run)."""
+
+  def __init__(self, *args, **kw):
+    super().__init__(*args, **kw)
+    self.run_flags = {}
+
+  def error(self, message):
+    print(f"train.py: error: {' '.join(message.split())}", file=sys.stderr)
+    sys.exit(2)
+
+
 def _config_flag(ap, *names, key: str, **kw):
   """A flag that sets config key `key` (dotted for a nested field, e.g. 'env.worlds'); build_config applies every
   such flag given (default None: not given) through config.from_dict, the type checks of a JSON config."""
   if kw.get("action", "store") == "store" and "choices" not in kw and "metavar" not in kw:
     kw["metavar"] = names[0].lstrip("-").replace("-", "_").upper()
+  if key != "num_devices":   # --devices may change on a resume (the checkpoint restores onto other device counts)
+    ap.run_flags[CONFIG_DEST + key] = names[0]
   return ap.add_argument(*names, dest=CONFIG_DEST + key, default=None, **kw)
 
 
 def parse_args(argv=None):
-  ap = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+  return _parser().parse_args(argv)
+
+
+def _parser() -> _Parser:
+  ap = _Parser(description=__doc__.split("\n")[0], formatter_class=argparse.RawTextHelpFormatter)
   _config_flag(ap, "--vehicle", key="vehicle", choices=VEHICLES)
   _config_flag(ap, "--variant", key="variant", choices=VARIANTS,
                help="rc: reactive control (default); pc: proactive control")
@@ -121,6 +140,8 @@ def parse_args(argv=None):
   ap.add_argument("--coordinator", metavar="ADDR:PORT", help="multi-host: process 0's address (jax.distributed)")
   ap.add_argument("--num-processes", type=int, help="multi-host: number of processes")
   ap.add_argument("--process-id", type=int, help="multi-host: this process's index")
+  ap.add_argument("--coordinator-timeout", type=float, default=300.0, metavar="S",
+                  help="multi-host: give up (exit 2) when the processes have not all joined after S seconds")
   ap.add_argument("--no-progress", action="store_true")
   ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
   ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
@@ -133,7 +154,8 @@ def parse_args(argv=None):
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")
-  return ap.parse_args(argv)
+  ap.run_flags.update(steps="--steps", config="--config", set="--set", sweep="--sweep")
+  return ap
 
 
 def _json_or_str(v: str):
@@ -228,14 +250,43 @@ def _sweep(members, out, a):
   return rows
 
 
+def check_up_front(a, run_flags: dict) -> None:
+  """Checks of the flags that need no JAX (one-line ValueError): --resume refuses the flags that would change the
+  run (its config.json fixes it) and needs its directory writable; a new run's --out (or runs/) must be a directory
+  it can write in; the coordinator address is HOST:PORT."""
+  from specguard_jax.cli import preflight
+  from specguard_jax.ppo import distributed
+  if a.resume:
+    given = [flag for dest, flag in run_flags.items() if getattr(a, dest) not in (None, [])]
+    if a.out is not None and os.path.abspath(a.out) != os.path.abspath(a.resume):
+      given.append("--out")
+    if given:
+      raise ValueError(f"--resume continues {a.resume} as its config.json says; {', '.join(given)} would change the "
+                       "run: drop them, or start a new run (--out) with them")
+    preflight.check_output_dir(a.resume, "--resume")
+  else:
+    preflight.check_output_dir(a.out or "runs", "--out")
+  if a.coordinator is not None:
+    distributed.parse_address(a.coordinator)
+
+
+def _give_up(message: str) -> None:
+  """distributed.initialize's give_up: the one-line error, then exit 2 at once (the main thread is inside jax)."""
+  print(f"train.py: error: {message}", file=sys.stderr, flush=True)
+  os._exit(2)
+
+
 def main(argv=None):
-  a = parse_args(argv)
+  ap = _parser()
+  a = ap.parse_args(argv)
   from specguard_jax import compile_cache
   from specguard_jax.ppo import distributed   # importing runner starts the backend: join the processes first
   try:
+    check_up_front(a, ap.run_flags)
     if a.deterministic_gpu:
       request_deterministic_gpu_ops()
-    distributed.initialize(a.coordinator, a.num_processes, a.process_id)
+    distributed.initialize(a.coordinator, a.num_processes, a.process_id, timeout_s=a.coordinator_timeout,
+                           log=lambda m: print(f"[train] {m}", flush=True), give_up=_give_up)
     compile_cache.enable(a.compile_cache)
     from specguard_jax.ppo import runner
     if a.resume:

@@ -7,13 +7,19 @@ import json
 
 import jax
 
-from envs.base import EnvConfig
+from envs.base import EnvConfig, check_env_values
 from envs import worlds as worlds_lib
 from envs.worlds import DEFAULT_WORLDS
+from specguard_jax import checks
 from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
 NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
+ACTIVATIONS = ("tanh", "relu", "elu", "swish")   # TrainConfig.activation (the keys of networks.ACTIVATIONS)
+MAX_NUM_ENVS = 64 << 20
+"""TrainConfig.num_envs' upper bound: 1,048,576 envs per device fit in 80 GB of GPU memory (BENCHMARKS.md), times 64
+devices; a larger count is a typo (a trillion envs would otherwise reach the compiler)."""
+MAX_SEED = 2**32 - 1   # TrainConfig.seed: jax.random.PRNGKey's 32-bit seed range
 
 
 def network_precision(name: str):
@@ -45,6 +51,22 @@ class PPOConfig:
   # activations stop growing with the env count: 1 << 20 leaves every run up to 262,144 envs per device with the
   # default unroll and minibatches one pass; 4 chunks at 1,048,576 envs.
   max_rows_per_pass: int = 1 << 20
+
+  def validate(self, name: str = "ppo") -> "PPOConfig":
+    """Ranges and types of every field (one-line ValueError naming `name`.field, the value and what is allowed)."""
+    checks.number(f"{name}.lr", self.lr, 0, lo_open=True)
+    checks.one_of(f"{name}.lr_schedule", self.lr_schedule, ("constant", "linear"))
+    checks.number(f"{name}.lr_end_frac", self.lr_end_frac, 0, 1)
+    checks.number(f"{name}.gamma", self.gamma, 0, 1, lo_open=True)
+    checks.number(f"{name}.gae_lambda", self.gae_lambda, 0, 1)
+    checks.number(f"{name}.clip_eps", self.clip_eps, 0, lo_open=True)
+    for f in ("value_clip_eps", "vf_coef", "ent_coef"):
+      checks.number(f"{name}.{f}", getattr(self, f), 0)
+    checks.number(f"{name}.max_grad_norm", self.max_grad_norm, 0, lo_open=True)
+    for f in ("num_minibatches", "update_epochs", "max_rows_per_pass"):
+      checks.integer(f"{name}.{f}", getattr(self, f), 1)
+    checks.one_of(f"{name}.normalize_advantage", self.normalize_advantage, (True, False))
+    return self
 
 
 TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
@@ -147,6 +169,7 @@ class TrainConfig:
     env = self.env
     if not isinstance(env, EnvConfig):
       raise ValueError(f"env must be an envs.base.EnvConfig, got {type(env).__name__}")
+    self.check_values()
     if env.control_mode != EnvConfig.control_mode:
       raise ValueError(f"env.control_mode is set per phase from variant; leave it {EnvConfig.control_mode!r} "
                        f"(got {env.control_mode!r})")
@@ -172,29 +195,49 @@ class TrainConfig:
                        f"{', '.join(MATMUL_PRECISIONS)}")
     if self.network_dtype not in NETWORK_DTYPES:
       raise ValueError(f"unknown network_dtype {self.network_dtype!r}; choose one of {', '.join(NETWORK_DTYPES)}")
-    if self.num_devices < 0 or self.env_groups < 0:
-      raise ValueError("num_devices and env_groups must be >= 0 (0 = one per device / all devices)")
     if self.env_groups and self.num_envs % self.env_groups:
       raise ValueError(f"num_envs ({self.num_envs}) must be divisible by env_groups ({self.env_groups})")
-    for name in ("num_envs", "unroll_length", "iters_per_call", "alternate_iters", "converge_window"):
-      if getattr(self, name) < 1:
-        raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-    if self.phase1_steps < 0 or self.phase2_steps < 0 or self.phase1_steps + self.phase2_steps == 0:
-      raise ValueError("phase1_steps and phase2_steps must be >= 0 and not both 0")
+    if self.phase1_steps + self.phase2_steps == 0:
+      raise ValueError("phase1_steps and phase2_steps must not both be 0")
     for agent, p in (("sg", self.sg), ("aa", self.aa)):
       if (self.num_envs * self.unroll_length) % p.num_minibatches:
         raise ValueError(f"num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible by "
                          f"{agent}.num_minibatches ({p.num_minibatches})")
-      if p.max_rows_per_pass < 1:
-        raise ValueError(f"{agent}.max_rows_per_pass must be >= 1, got {p.max_rows_per_pass}")
-      if p.lr_schedule not in ("constant", "linear"):
-        raise ValueError(f"unknown {agent}.lr_schedule {p.lr_schedule!r}; choose constant or linear")
-      if not 0 < p.gamma <= 1 or not 0 <= p.gae_lambda <= 1:
-        raise ValueError(f"{agent}.gamma must be in (0, 1] and gae_lambda in [0, 1]")
-    if len(self.speeds) != 3 or min(self.speeds) < 0:
-      raise ValueError("speeds must be 3 non-negative numbers (m/s)")
     for phase in (1, 2, "eval"):
       env_config(self, phase).validate()
+    return self
+
+  def check_values(self) -> "TrainConfig":
+    """Ranges and types of every field on its own, env's and the agents' included (one-line ValueError naming the
+    key, the value and what is allowed): what `validate` checks first, before the checks that combine fields, and
+    what a config file is checked for as it loads (load_config_file), so the error names the file."""
+    if not isinstance(self.env, EnvConfig):
+      raise ValueError(f"env must be an envs.base.EnvConfig, got {type(self.env).__name__}")
+    check_env_values(self.env, "env.")
+    checks.integer("num_envs", self.num_envs, 1, MAX_NUM_ENVS)
+    for name in ("unroll_length", "iters_per_call", "alternate_iters", "converge_window"):
+      checks.integer(name, getattr(self, name), 1)
+    for name in ("phase1_steps", "phase2_steps", "eval_missions", "max_nan_skips", "num_devices", "env_groups"):
+      checks.integer(name, getattr(self, name), 0)
+    checks.integer("seed", self.seed, 0, MAX_SEED)
+    checks.sequence("hidden", self.hidden, min_len=1)
+    for i, h in enumerate(self.hidden):
+      checks.integer(f"hidden[{i}]", h, 1)
+    checks.one_of("activation", self.activation, ACTIVATIONS)
+    checks.sequence("speeds", self.speeds, length=3)
+    for i, v in enumerate(self.speeds):
+      checks.number(f"speeds[{i}]", v, 0)
+    checks.sequence("attack_sensors", self.attack_sensors)
+    for name in ("init_log_std", "attack_alpha", "attack_beta", "attack_gamma", "completion_bonus"):
+      checks.number(name, getattr(self, name))
+    checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
+    checks.number("converge_eps", self.converge_eps, 0)
+    checks.number("obs_clip", self.obs_clip, 0, lo_open=True)
+    checks.number("checkpoint_every_s", self.checkpoint_every_s, 0, allow_inf=True)
+    for name in ("sg", "aa"):
+      if not isinstance(getattr(self, name), PPOConfig):
+        raise ValueError(f"{name} must be a PPOConfig, got {type(getattr(self, name)).__name__}")
+      getattr(self, name).validate(name)
     return self
 
   @property
@@ -310,11 +353,19 @@ def nested(items: dict) -> dict:
 
 
 def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
+  """TrainConfig from a JSON file (a --config file or a run directory's config.json) through `from_dict`; every
+  problem (unreadable, not UTF-8, not JSON, nested too deeply, not an object, a bad key or value) is a one-line
+  ValueError naming the file."""
   try:
-    with open(path) as f:
+    with open(path, encoding="utf-8") as f:
       d = json.load(f)
-  except (OSError, json.JSONDecodeError) as e:
-    raise ValueError(f"cannot read config file {path}: {e}") from None
+  except (OSError, ValueError) as e:   # ValueError: JSONDecodeError and UnicodeDecodeError
+    raise ValueError(f"cannot read config file {path}: {' '.join(str(e).split())}") from None
+  except RecursionError:
+    raise ValueError(f"cannot read config file {path}: JSON nested too deeply") from None
   if not isinstance(d, dict):
-    raise ValueError(f"config file {path} must hold a JSON object")
-  return from_dict(d, base)
+    raise ValueError(f"config file {path} must hold a JSON object, got a JSON {type(d).__name__}")
+  try:
+    return from_dict(d, base).check_values()
+  except ValueError as e:
+    raise ValueError(f"config file {path}: {e}") from None

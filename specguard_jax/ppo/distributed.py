@@ -16,29 +16,141 @@ MJX model on the process's own device, envs/base.py).
 
 from __future__ import annotations
 
+import ipaddress
 import os
+import re
+import socket
+import sys
+import threading
+import time
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from specguard_jax import checks
+
 AXIS = "data"
 
 
-def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None):
+DEFAULT_TIMEOUT_S = 300   # jax.distributed.initialize's own initialization_timeout
+_LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOSTNAME = re.compile(rf"^(?=.{{1,253}}$){_LABEL}(\.{_LABEL})*$")   # RFC 1123 host names, IPv4 addresses
+
+
+def parse_address(addr, what: str = "--coordinator") -> tuple:
+  """(host, port) of a coordinator address HOST:PORT (a host name, an IPv4 address or a bracketed IPv6 address
+  [::1]:1234; port 1-65535); one-line ValueError otherwise (jax's own parser fails on one with an IndexError)."""
+  allowed = "HOST:PORT (a host name or IP address, [IPv6]:PORT; port 1-65535), e.g. 10.0.0.1:1234"
+  host, sep, port = str(addr).rpartition(":")
+  if host.startswith("[") and host.endswith("]"):
+    try:
+      ipaddress.IPv6Address(host[1:-1])
+    except ValueError:
+      raise ValueError(f"{what} {addr!r}: {host} is not an IPv6 address; expected {allowed}") from None
+    host = host[1:-1]
+  elif not sep or not _HOSTNAME.match(host):
+    raise ValueError(f"{what} {addr!r} is not a coordinator address; expected {allowed}")
+  if not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
+    raise ValueError(f"{what} {addr!r}: port {port!r} is not in 1-65535; expected {allowed}")
+  return host, int(port)
+
+
+def check_port_free(port: int, what: str) -> None:
+  """Process 0 serves the coordinator on `port` of every interface (jax's default bind address): one-line
+  ValueError when something on this host holds it already (jax would crash the process)."""
+  for family, addr in ((socket.AF_INET6, "::"), (socket.AF_INET, "0.0.0.0")):
+    try:
+      with socket.socket(family, socket.SOCK_STREAM) as sk:
+        sk.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sk.bind((addr, port))
+      return
+    except OSError as e:
+      if e.errno == 98:   # EADDRINUSE; other errors (no IPv6 on this host): try the next family
+        raise ValueError(f"{what}: port {port} is in use on this host (process 0 serves the coordinator there); "
+                         "pick a free port") from None
+
+
+def _tcp_state(host: str, port: int) -> str:
+  try:
+    with socket.create_connection((host, port), timeout=2.0):
+      return "its port accepts connections"
+  except OSError as e:
+    return f"TCP connect: {e.strerror or e}"
+
+
+def _exit_with_error(message: str) -> None:
+  print(f"error: {message}", file=sys.stderr, flush=True)
+  os._exit(2)
+
+
+def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None, *,
+               timeout_s: float = DEFAULT_TIMEOUT_S, log=print, give_up=_exit_with_error):
   """Join a multi-process run. With no arguments, uses JAX's env vars (JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES,
-  JAX_PROCESS_ID) or cluster auto-detection (SLURM, ...) if set; does nothing for a single-process run."""
+  JAX_PROCESS_ID) or cluster auto-detection (SLURM, ...) if set; does nothing for a single-process run.
+
+  Addresses, counts and (on process 0) the coordinator's port are checked before jax sees them (one-line
+  ValueError). While the processes have not all joined, logs "waiting for coordinator ADDR (N s)" (after 1 s, then
+  every 10 s); after timeout_s s calls give_up(one-line reason), which must not return: jax itself would abort the
+  whole process with a C++ fatal error and a stack trace a little later (its timeout is set beyond ours), and a
+  thread cannot interrupt the native call, so the default prints the reason on stderr and exits with status 2."""
+  checks.number("--coordinator-timeout", timeout_s, 1)
   if coordinator is None and num_processes is None and process_id is None:
-    if not os.environ.get("JAX_COORDINATOR_ADDRESS"):
+    env_addr = os.environ.get("JAX_COORDINATOR_ADDRESS")
+    if not env_addr:
       return False
-    jax.distributed.initialize()
+    parse_address(env_addr, "JAX_COORDINATOR_ADDRESS")
+    _join(env_addr, None, timeout_s, log, give_up)
     return True
   if coordinator is None or num_processes is None or process_id is None:
     raise ValueError("multi-host needs all of --coordinator ADDR:PORT, --num-processes N and --process-id I")
+  host, port = parse_address(coordinator)
+  if num_processes < 1:
+    raise ValueError(f"--num-processes must be >= 1, got {num_processes}")
   if not 0 <= process_id < num_processes:
     raise ValueError(f"--process-id must be in [0, {num_processes}), got {process_id}")
-  jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+  if process_id == 0:
+    check_port_free(port, f"--coordinator {coordinator}")
+  _join(coordinator, (host, port, num_processes, process_id), timeout_s, log, give_up)
   return True
+
+
+def _join(addr: str, run, timeout_s: float, log, give_up) -> None:
+  """jax.distributed.initialize (run: (host, port, num_processes, process_id), None: from JAX's env vars) under a
+  watchdog thread that logs the wait and gives up after timeout_s."""
+  done = threading.Event()
+  t0 = time.time()
+
+  def watch():
+    next_log = 1.0
+    while not done.wait(min(next_log, timeout_s) - (time.time() - t0)):
+      waited = time.time() - t0
+      if waited >= timeout_s:
+        if run is None:
+          why = f"the processes did not all join coordinator {addr} within {timeout_s:g} s"
+        elif run[3] == 0:
+          why = (f"not all {run[2]} processes joined coordinator {addr} within {timeout_s:g} s (this is process 0); "
+                 "start the others with the same --coordinator and --num-processes, or raise --coordinator-timeout")
+        else:
+          why = (f"coordinator {addr} not reached within {timeout_s:g} s ({_tcp_state(run[0], run[1])}); start "
+                 "process 0 first, check the address, or raise --coordinator-timeout")
+        give_up(why)
+        return
+      log(f"waiting for coordinator {addr} ({waited:.0f} s)")
+      next_log = waited + 10.0
+
+  watcher = threading.Thread(target=watch, name="coordinator-watchdog", daemon=True)
+  watcher.start()
+  jax_timeout = int(timeout_s) + 60   # beyond ours: the watchdog gives up first, with its one-line reason
+  try:
+    if run is None:
+      jax.distributed.initialize(initialization_timeout=jax_timeout)
+    else:
+      jax.distributed.initialize(coordinator_address=addr, num_processes=run[2], process_id=run[3],
+                                 initialization_timeout=jax_timeout)
+  finally:
+    done.set()
+    watcher.join()
 
 
 def is_main() -> bool:

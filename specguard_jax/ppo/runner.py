@@ -33,7 +33,7 @@ from specguard_jax.ppo import ahead as ahead_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
-from specguard_jax.ppo.config import TRAIN_ENV, TrainConfig, from_dict
+from specguard_jax.ppo.config import TRAIN_ENV, TrainConfig, load_config_file
 
 RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
 COMPILE_NOTE = "(first run takes a while; cached afterwards)"   # the persistent cache: specguard_jax.compile_cache
@@ -195,8 +195,10 @@ def load_run_config(run_dir: str) -> TrainConfig:
   path = os.path.join(run_dir, "config.json")
   if not os.path.exists(path):
     raise ValueError(f"cannot resume: {path} not found (not a run directory)")
-  with open(path) as f:
-    return from_dict(json.load(f)).validate()
+  try:
+    return load_config_file(path).validate()
+  except ValueError as e:
+    raise ValueError(f"cannot resume: {e}" if path in str(e) else f"cannot resume: {path}: {e}") from None
 
 
 def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: bool = True,
@@ -212,7 +214,6 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   the programs compile in seconds to minutes either way).
   """
   main = distributed.is_main()
-  os.makedirs(run_dir, exist_ok=True)
   if resume:
     cfg = load_run_config(run_dir)
   else:
@@ -225,6 +226,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
   # continues the same run, and a resume where the kernel cannot run is a one-line error.
   cfg = dataclasses.replace(cfg, env_groups=distributed.groups_for(cfg.num_envs, cfg.env_groups, mesh)).with_env(
       ekf_kernel=resolve_ekf_kernel(cfg.env.ekf_kernel))
+  os.makedirs(run_dir, exist_ok=True)   # after every check of the config and the devices: a refused run writes nothing
   if not resume and main:
     with open(os.path.join(run_dir, "config.json"), "w") as f:
       json.dump(cfg.to_dict(), f, indent=1)
