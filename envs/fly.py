@@ -136,9 +136,9 @@ def main(argv=None):
   if args.world != "all" and args.world not in worlds_lib.PRESETS:
     _parser().error(f"unknown world {args.world!r}; choose 'all' or one of: {', '.join(worlds_lib.PRESETS)}")
   import os
-  for flag, path in (("--mission", args.mission), ("--params", args.params)):
+  for what, path in (("mission file", args.mission), ("parameter file", args.params)):
     if path is not None and not os.path.isfile(path):
-      _parser().error(f"{flag}: file not found: {path}")
+      _parser().error(f"{what} not found: {path}")
   if args.max_waypoints < 1:
     _parser().error("--max-waypoints must be >= 1")
   names = list(worlds_lib.PRESETS) if args.world == "all" else [args.world]

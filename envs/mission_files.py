@@ -27,9 +27,9 @@ frame around 0, 0 (a simulator's) and lat = lon = 0 is a real position in it; ot
 .plan extras (`load_plan`):
   * ComplexItem "survey": expanded into lawn-mower waypoints over its polygon (`survey_waypoints`): transects along
     `angle` (degrees clockwise from north) spaced CameraCalc.AdjustedFootprintSide apart (else `spacing` /
-    `grid.spacing`), the first half a spacing inside the polygon's edge, flown alternately, two waypoints per
-    transect where it enters and leaves the polygon, at CameraCalc.DistanceToSurface (relative to home unless
-    DistanceToSurfaceRelative is false). Other complex items (corridor scan, structure scan) are a one-line error
+    `grid.spacing`), centred on the polygon, flown alternately, two waypoints per transect where it enters and
+    leaves the polygon, at CameraCalc.DistanceToSurface (relative to home unless
+    DistanceToSurfaceRelative is false); QGC's turnaround distance and camera triggers are left out. Other complex items (corridor scan, structure scan) are a one-line error
     naming the item and its type.
   * geoFence polygons and circles (inclusion and exclusion): the mission's fence geometry (envs.geofence.Geofence),
     which replaces the generated world's fences when the env flies the plan.
@@ -351,23 +351,22 @@ def _plan_extras(doc: dict, name: str) -> PlanExtras:
 
 
 def survey_waypoints(polygon_xy, angle_deg: float, spacing: float):
-  """Lawn-mower waypoints [2K, 2] (m) covering the polygon polygon_xy [V, 2] (ENU): K transects along the direction
-  angle_deg clockwise from north, spaced `spacing` m apart, the first and last half a spacing inside the polygon's
-  extent (one line through the middle when it is narrower than a spacing), each entered and left where it crosses the
-  polygon's outline first and last, flown alternately (boustrophedon)."""
+  """Lawn-mower waypoints [2K, 2] (m) covering the polygon polygon_xy [V, 2] (ENU): K = ceil(width / spacing)
+  transects along the direction angle_deg clockwise from north, `spacing` m apart and centred on the polygon's
+  extent across them (so each covers half a spacing either side; one line through the middle when the polygon is
+  narrower than a spacing), each entered and left where it crosses the polygon's outline first and last, flown
+  alternately (boustrophedon)."""
   poly = np.asarray(polygon_xy, np.float64)
   a = math.radians(angle_deg)
   d = np.array([math.sin(a), math.cos(a)])      # along the transects (east, north)
   n = np.array([math.cos(a), -math.sin(a)])     # across them
   across = poly @ n
   lo, hi = float(across.min()), float(across.max())
-  k = int(math.floor((hi - lo) / spacing))
+  k = max(1, math.ceil((hi - lo) / spacing - 1e-6))
   if k > MAX_SURVEY_TRANSECTS:
     raise ValueError(f"{k} transects (more than {MAX_SURVEY_TRANSECTS}): spacing {spacing:g} m is too small for a "
                      f"{hi - lo:.0f} m wide polygon")
-  offsets = [lo + spacing * (j + 0.5) for j in range(k)] or [0.5 * (lo + hi)]
-  if offsets[-1] > hi:
-    offsets = [0.5 * (lo + hi)]
+  offsets = [0.5 * (lo + hi) + spacing * (j - 0.5 * (k - 1)) for j in range(k)]
   a_pts, b_pts = poly, np.roll(poly, -1, axis=0)
   out = []
   for j, o in enumerate(offsets):

@@ -7,6 +7,7 @@
   python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
   python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
   python train.py --set env.clearance=6 sg.lr=1e-4  # any config field, nested ones dotted (values as JSON)
+  python train.py --vehicle rover --params rover.parm   # the vehicle's own autopilot parameters set the specs
   python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
   python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
 
@@ -97,6 +98,12 @@ def _parser() -> _Parser:
   ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
   _config_flag(ap, "--world", key="env.worlds", type=_csv, metavar="WORLDS",
                help="comma-separated world presets to train in")
+  _config_flag(ap, "--params", key="env.params_file", metavar="FILE",
+               help="autopilot parameter file (PX4 .params or ArduPilot .parm): the spec table's parameters, the "
+                    "missions' speed and acceptance radius, the home-centred fence (specguard_jax.specs.vehicle_params)")
+  _config_flag(ap, "--mission", key="env.mission_file", metavar="FILE",
+               help="QGroundControl mission (.plan or QGC WPL 110) every episode flies, with its geofence and rally "
+                    "points (default: generated missions)")
   _config_flag(ap, "--reward", key="env.reward", choices=REWARDS,
                help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
   _config_flag(ap, "--action", key="action", choices=("gaussian", "discrete"),
