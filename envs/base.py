@@ -104,7 +104,7 @@ class EnvConfig:
   worlds: tuple = ()
   tick_dt: float = 0.02
   ticks_per_step: int = 5
-  max_episode_s: float = 400.0
+  max_episode_s: float = missions_lib.DEFAULT_EPISODE_CAP_S   # 400 s
   stall_s: float = 20.0
   control_mode: str = "autopilot"
   override_frame: str = "world"

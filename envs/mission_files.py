@@ -29,8 +29,8 @@ frame around 0, 0 (a simulator's) and lat = lon = 0 is a real position in it; ot
     `angle` (degrees clockwise from north) spaced CameraCalc.AdjustedFootprintSide apart (else `spacing` /
     `grid.spacing`), centred on the polygon, flown alternately, two waypoints per transect where it enters and
     leaves the polygon, at CameraCalc.DistanceToSurface (relative to home unless
-    DistanceToSurfaceRelative is false); QGC's turnaround distance and camera triggers are left out. Other complex items (corridor scan, structure scan) are a one-line error
-    naming the item and its type.
+    DistanceToSurfaceRelative is false); QGC's turnaround distance and camera triggers are left out. Other complex
+    items (corridor scan, structure scan) are a one-line error naming the item and its type.
   * geoFence polygons and circles (inclusion and exclusion): the mission's fence geometry (envs.geofence.Geofence),
     which replaces the generated world's fences when the env flies the plan.
   * rallyPoints: [R, 3] positions (altitude relative to home; 0 for rovers) for the recovery controllers.
@@ -61,8 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs import geofence as geofence_lib
-from envs.base import EnvConfig
-from envs.missions import Mission, MissionConfig, mission_timing
+from envs.missions import DEFAULT_EPISODE_CAP_S, Mission, MissionConfig, mission_timing
 from specguard_jax.types import VEHICLES
 
 EARTH_RADIUS = 6378137.0
@@ -602,7 +601,7 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
   home_v, wp_v, n_v = f32(np.zeros(3)), f32(arr), jnp.int32(n)
   lw, lt, ld, to = jnp.int32(loiter_wp), f32(loiter_time), f32(land), f32(takeoff_alt)
   window_open, deadline, duration = mission_timing(home_v, wp_v, n_v, to, f32(cruise), lw, lt, ld, cfg)
-  cap = EnvConfig.max_episode_s if max_episode_s is None else float(max_episode_s)
+  cap = DEFAULT_EPISODE_CAP_S if max_episode_s is None else float(max_episode_s)
   if not float(duration) <= cap:
     problem = (f"the mission's nominal duration {float(duration):.0f} s exceeds the episode cap of {cap:g} s "
                "(EnvConfig.max_episode_s): it cannot finish within an episode")

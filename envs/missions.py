@@ -1,7 +1,7 @@
 """Mission plans: the `Mission` pytree, a procedural generator and path helpers (jittable, vmappable).
 
 A mission is what a QGroundControl plan gives PX4 / ArduPilot: a home position on the ground, a take-off altitude
-(drones), up to `MissionConfig.max_waypoints` (default `MAX_WAYPOINTS`) waypoints the autopilot flies THROUGH (no stop at intermediate waypoints), an optional
+(drones), waypoints the autopilot flies THROUGH (no stop at intermediate waypoints; W slots, see Padding), an optional
 loiter at one waypoint and an optional landing at the last waypoint. On top of that SpecGuard's S5 ("navigate
 through waypoints", F_[t_i, t_j](dist_wp < 5)) needs a time window per waypoint: `window_open` / `deadline`.
 
@@ -27,6 +27,10 @@ from specguard_jax.types import VEHICLES
 MAX_WAYPOINTS = 12
 """Default waypoint slots per generated mission (`MissionConfig.max_waypoints`; the array is fixed-size, so every
 slot costs work in every env step: the default stays small)."""
+
+DEFAULT_EPISODE_CAP_S = 400.0
+"""s: the default cap on an episode (envs.base.EnvConfig.max_episode_s), which loaded mission files are checked
+against unless given another."""
 
 PATH_KINDS = ("line", "circle", "polygon")
 """Generated path shapes, in the order of `MissionConfig.path_kind_probs`."""

@@ -100,7 +100,8 @@ def _parser() -> _Parser:
                help="comma-separated world presets to train in")
   _config_flag(ap, "--params", key="env.params_file", metavar="FILE",
                help="autopilot parameter file (PX4 .params or ArduPilot .parm): the spec table's parameters, the "
-                    "missions' speed and acceptance radius, the home-centred fence (specguard_jax.specs.vehicle_params)")
+                    "missions' speed and acceptance radius, the home-centred fence "
+                    "(specguard_jax.specs.vehicle_params)")
   _config_flag(ap, "--mission", key="env.mission_file", metavar="FILE",
                help="QGroundControl mission (.plan or QGC WPL 110) every episode flies, with its geofence and rally "
                     "points (default: generated missions)")
