@@ -43,6 +43,8 @@ def _parser():
                       "acceptance radius, home-centred fence (specguard_jax.specs.vehicle_params)")
   p.add_argument("--max-waypoints", type=int, default=1000,
                  help="most waypoints a --mission file may have (more is an error, never a truncation)")
+  p.add_argument("--max-s", type=float, default=None,
+                 help="episode cap (s; default EnvConfig.max_episode_s, 400): a long or slow plan needs more")
   p.add_argument("--max-duration", type=float, default=None,
                  help="cap on generated mission duration (s); shorter missions run faster on CPU")
   p.add_argument("--attack", default=None,
@@ -55,11 +57,13 @@ def _parser():
 
 
 def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt", mission_file=None, params_file=None,
-             max_waypoints: int = 1000):
+             max_waypoints: int = 1000, max_s=None):
   """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data); mission_file /
   params_file: EnvConfig.mission_file / params_file (the user's plan, with its fences, and parameters)."""
   overrides = {"mission_file": mission_file or "", "params_file": params_file or "",
                "mission_max_waypoints": int(max_waypoints)}
+  if max_s is not None:
+    overrides["max_episode_s"] = float(max_s)
   if attack:
     names = tuple(a.strip() for a in attack.split(",") if a.strip())
     profiles = attacks.PROFILES if attack_type == "both" else (attack_type,)
@@ -141,17 +145,20 @@ def main(argv=None):
       _parser().error(f"{what} not found: {path}")
   if args.max_waypoints < 1:
     _parser().error("--max-waypoints must be >= 1")
+  if args.max_s is not None and not 0 < args.max_s < float("inf"):
+    _parser().error("--max-s must be a finite number of seconds > 0")
   names = list(worlds_lib.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
     with warnings.catch_warnings():   # a mission file's warning: one line on stderr
       warnings.showwarning = lambda message, *_, **__: print(f"warning: {message}", file=sys.stderr)
       if args.mission is not None:   # a bad file fails before the env is built
-        mission_files.load_plan(args.mission, args.vehicle, max_waypoints=args.max_waypoints)
+        mission_files.load_plan(args.mission, args.vehicle, max_waypoints=args.max_waypoints,
+                                **({} if args.max_s is None else {"max_episode_s": args.max_s}))
       with warnings.catch_warnings():   # the file's notices were printed by the check above
         warnings.simplefilter("ignore", mission_files.MissionFileWarning)
         env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type, args.mission, args.params,
-                       args.max_waypoints)
+                       args.max_waypoints, args.max_s)
       for i, name in enumerate(names):
         results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
                            args.plot if i == 0 else None, env=env))
