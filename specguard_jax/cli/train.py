@@ -205,6 +205,22 @@ def build_config(a):
   return cfg.validate()
 
 
+def check_user_files(cfg) -> None:
+  """The run's parameter and mission files (env.params_file, env.mission_file) load for its vehicle: a bad one is a
+  one-line ValueError before anything is built. Their notices are left to the env, which loads them again."""
+  import warnings
+
+  from envs import mission_files
+  from specguard_jax.specs import vehicle_params
+  with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    if cfg.env.params_file:
+      vehicle_params.load_vehicle_settings(cfg.env.params_file, cfg.vehicle)
+    if cfg.env.mission_file:
+      mission_files.load_plan(cfg.env.mission_file, cfg.vehicle, max_episode_s=cfg.env.max_episode_s,
+                              max_waypoints=cfg.env.mission_max_waypoints)
+
+
 def _sweep_members(cfg, items):
   import itertools
 
@@ -302,6 +318,7 @@ def main(argv=None):
       out = a.resume
     else:
       cfg = build_config(a)
+      check_user_files(cfg)
       out = a.out or os.path.join("runs", f"{cfg.vehicle}_{cfg.variant}_s{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     if a.sweep:
       members = _sweep_members(cfg, a.sweep)
