@@ -152,3 +152,22 @@ def test_fallback_hold_goes_to_the_nearest_rally_point():
   np.testing.assert_allclose(near[:2], [0.5, 0.0], atol=1e-5)   # slows to k_push * distance on arrival
   slow = fallback.apply(cfg, vel, 2.0, 50.0, jnp.zeros(3), True, pos, rally)   # not holding: the rally is unused
   np.testing.assert_allclose(slow, fallback.apply(cfg, vel, 2.0, 50.0, jnp.zeros(3), True))
+
+
+def test_env_takes_the_plan_and_parameter_file(tmp_path):
+  import jax
+
+  import envs
+  plan = tmp_path / "p.plan"
+  plan.write_text(plan_text([wp(20, 0, 0), wp(60, 0, 0)], **FENCED))
+  parm = tmp_path / "r.parm"
+  parm.write_text("CRUISE_SPEED 3\nWP_RADIUS 1.5\nFENCE_RADIUS 250\n")
+  env = envs.make("rover", mission_file=str(plan), params_file=str(parm))
+  params = env.spec_table.params
+  assert params["CRUISE_SPEED_MIN"] == 1.5 and params["WPNAV_RADIUS"] == 1.5
+  assert env.mission_cfg.cruise_speed == (3.0, 3.0) and env.mission_cfg.acceptance_radius == 1.5
+  m = env.sample_mission(jax.random.PRNGKey(0))
+  assert int(m.n_waypoints) == 2 and float(m.cruise_speed) == 3.0 and float(m.acceptance_radius) == 1.5
+  assert env.geofence.n_zones == 3 and env.geofence.max_radius == 250.0 and env.plan.rally_points.shape == (2, 3)
+  plain = envs.make("rover")
+  assert plain.plan is None and plain.geofence is None
