@@ -104,7 +104,7 @@ class EnvConfig:
   worlds: tuple = ()
   tick_dt: float = 0.02
   ticks_per_step: int = 5
-  max_episode_s: float = 400.0
+  max_episode_s: float = missions_lib.DEFAULT_EPISODE_CAP_S   # 400 s
   stall_s: float = 20.0
   control_mode: str = "autopilot"
   override_frame: str = "world"
@@ -159,6 +159,14 @@ class EnvConfig:
   # for more compile per env variant (bench/env_step_ab.py, docs/PERFORMANCE.md): worth it for long runs, not for the
   # default one (train.py --unroll-ticks).
   unroll_ticks: bool = False
+  # A user's own mission and vehicle (envs.mission_files, specguard_jax.specs.vehicle_params): mission_file, a QGC
+  # .plan / WPL file every episode flies (its geoFence replaces the generated world's fences, its rally points go to
+  # the world; "" generated missions); mission_max_waypoints, the most waypoints that file may have (the waypoint
+  # array has the file's own length: no padding to this limit); params_file, a PX4 .params / ArduPilot .parm file
+  # that sets the spec table's parameters, the missions' speed and acceptance radius and the home-centred fence.
+  mission_file: str = ""
+  mission_max_waypoints: int = 1000
+  params_file: str = ""
 
   def validate(self):
     check_env_values(self)
@@ -210,6 +218,10 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   for name in ("tick_dt", "max_episode_s", "stall_s"):
     checks.number(prefix + name, getattr(cfg, name), 0, lo_open=True)
   checks.integer(f"{prefix}ticks_per_step", cfg.ticks_per_step, 1)
+  checks.integer(f"{prefix}mission_max_waypoints", cfg.mission_max_waypoints, 1)
+  for name in ("mission_file", "params_file"):
+    if not isinstance(getattr(cfg, name), str):
+      raise ValueError(f"{prefix}{name} must be a file path (a string), got {getattr(cfg, name)!r}")
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
   for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
@@ -268,6 +280,9 @@ class RAVEnv(Env):
     self.det_cfg = None if config.detector == "none" else config.detector_config or (
         detection_lib.DetectorConfig.drone() if self.vehicle == "drone" else detection_lib.DetectorConfig.rover())
     self.spec_table = config.specs or self._default_specs()
+    self.plan, self.geofence, self.fence_alt_max = None, None, None
+    if config.params_file or config.mission_file:
+      self._load_user_files()
     self.spec_eval = specs_lib.compile_specs(self.spec_table, self.dt)
     self.reward_fn = rewards_lib.RewardFn.create(self.spec_table)
     self.recovery = None
@@ -280,6 +295,40 @@ class RAVEnv(Env):
     if config.recovery_rule == "fallback":   # the collision spec's margin (S1) and the minimum-speed spec's bound (S7)
       self.fallback_cfg = fallback_lib.FallbackConfig(margin=self.spec_table.threshold(self.spec_table["S1"]),
                                                       min_speed=self.spec_table.threshold(self.spec_table["S7"]))
+
+  def _load_user_files(self):
+    """EnvConfig.params_file and mission_file: the spec table's parameters, the missions' speed and acceptance
+    radius, the home fence (specs.vehicle_params), then the plan (envs.mission_files.load_plan) and the geofence the
+    episodes fly in (envs.geofence: the plan's zones and the home fence). A bad file raises a one-line ValueError."""
+    from envs import geofence as geofence_lib
+    from envs import mission_files
+    from specguard_jax.specs import vehicle_params
+    cfg = self.config
+    home_fence = geofence_lib.empty_geofence()
+    if cfg.params_file:
+      vs = vehicle_params.load_vehicle_settings(cfg.params_file, self.vehicle)
+      names = set(self.spec_table.params)
+      self.spec_table = specs_lib.with_params(self.spec_table, {n: v for n, v in vs.spec_overrides if n in names})
+      over = {}
+      if vs.cruise_speed is not None:
+        over["cruise_speed"] = (vs.cruise_speed, vs.cruise_speed)
+      if vs.acceptance_radius is not None:
+        over["acceptance_radius"] = vs.acceptance_radius
+      self.mission_cfg = dataclasses.replace(self.mission_cfg, **over)
+      home_fence = geofence_lib.make_geofence(max_radius=vs.fence_radius, any_inclusion=self.vehicle == "drone")
+      self.fence_alt_max = vs.fence_alt_max or None
+    fence = home_fence
+    if cfg.mission_file:
+      self.plan = mission_files.load_plan(cfg.mission_file, self.vehicle, self.mission_cfg,
+                                          max_episode_s=cfg.max_episode_s, max_waypoints=cfg.mission_max_waypoints)
+      fence = geofence_lib.merge(self.plan.geofence, home_fence)
+    self.geofence = fence if fence.active else None
+
+  def sample_mission(self, rng: jax.Array):
+    """The mission an episode flies: the plan of EnvConfig.mission_file, else one generated from mission_cfg."""
+    if self.plan is not None:
+      return self.plan.mission
+    return missions_lib.generate_mission(self.mission_cfg, rng)
 
   def _recon_config(self, n_u: int):
     """The reconstruction's ReconConfig. Paper mode: the checkpoint must predate the attack's effect on the estimate,
@@ -336,7 +385,7 @@ class RAVEnv(Env):
     `config.attack` (no attack when that is None)."""
     k_mission, k_world, k_dr, k_phys, k_sens, k_run, k_pick = jax.random.split(rng, 7)
     if mission is None:
-      mission = missions_lib.generate_mission(self.mission_cfg, k_mission)
+      mission = self.sample_mission(k_mission)
     if world_id is None:
       ids = jnp.asarray(self.world_ids, jnp.int32)
       world_id = ids[0] if len(self.world_ids) == 1 else jax.random.choice(k_pick, ids)
@@ -354,6 +403,11 @@ class RAVEnv(Env):
   def _reset_with(self, mission, world_id, k_world, k_dr, k_phys, k_sens, k_run) -> State:
     world = worlds_lib.generate_world(jnp.asarray(world_id, jnp.int32), mission, k_world,
                                       clearance=self.config.clearance)
+    if self.plan is not None or self.geofence is not None or self.fence_alt_max is not None:   # the user's files
+      world = worlds_lib.with_geofence(
+        world, self.geofence if self.geofence is not None else world.geofence, self.fence_alt_max,
+        replace_fences=self.plan is not None and self.plan.has_fence,
+        rally_points=self.plan.rally_points if self.plan is not None else None)
     dr = self._sample_domain(world, k_dr)
     data, truth = self._vehicle_init(mission, dr, k_phys)
     phys = PhysicsState.of(data)
@@ -562,7 +616,7 @@ class RAVEnv(Env):
     if cfg.recovery_rule == "fallback":   # the navigator's setpoint as the fallback rule changes it under an alarm
       d_est, g_est = worlds_lib.obstacle_sdf_and_grad(world, self._query_pos(est.pos))
       vel_nav = fallback_lib.apply(self.fallback_cfg, vel_nav, fallback_lib.position_sigma(sim["recon"]), d_est,
-                                   g_est, sim["det"].alarm > 0)
+                                   g_est, sim["det"].alarm > 0, est.pos, world.rally_points)
     use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)

@@ -2,6 +2,7 @@
 
   python -m envs.fly --vehicle drone --world urban_park --missions 256 [--seed 0] [--plot out.png] [--json]
   python -m envs.fly --vehicle drone --mission envs/data/drone_survey.plan --plot survey.png
+  python -m envs.fly --vehicle rover --mission my.plan --params rover.parm --plot my.png   # your plan and parameters
   python -m envs.fly --vehicle rover --world all --missions 1000 --json     # every world preset
 
 Missions run in parallel (vmapped, in batches of --batch) until each completes, crashes, collides, stalls or hits
@@ -35,7 +36,15 @@ def _parser():
   p.add_argument("--missions", type=int, default=16, help="number of missions per world (>= 1)")
   p.add_argument("--batch", type=int, default=0, help="missions per jitted batch (0: all on GPU, 64 on CPU)")
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--mission", default=None, help="QGroundControl mission file (.plan or QGC WPL 110) to fly")
+  p.add_argument("--mission", default=None,
+                 help="QGroundControl mission file (.plan or QGC WPL 110) to fly, with its geoFence and rally points")
+  p.add_argument("--params", default=None,
+                 help="autopilot parameter file (PX4 .params or ArduPilot .parm): spec parameters, mission speed and "
+                      "acceptance radius, home-centred fence (specguard_jax.specs.vehicle_params)")
+  p.add_argument("--max-waypoints", type=int, default=1000,
+                 help="most waypoints a --mission file may have (more is an error, never a truncation)")
+  p.add_argument("--max-s", type=float, default=None,
+                 help="episode cap (s; default EnvConfig.max_episode_s, 400): a long or slow plan needs more")
   p.add_argument("--max-duration", type=float, default=None,
                  help="cap on generated mission duration (s); shorter missions run faster on CPU")
   p.add_argument("--attack", default=None,
@@ -47,9 +56,14 @@ def _parser():
   return p
 
 
-def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt"):
-  """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data)."""
-  overrides = {}
+def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt", mission_file=None, params_file=None,
+             max_waypoints: int = 1000, max_s=None):
+  """The autopilot-only env used by `fly` (one per vehicle: the world is chosen per call, as data); mission_file /
+  params_file: EnvConfig.mission_file / params_file (the user's plan, with its fences, and parameters)."""
+  overrides = {"mission_file": mission_file or "", "params_file": params_file or "",
+               "mission_max_waypoints": int(max_waypoints)}
+  if max_s is not None:
+    overrides["max_episode_s"] = float(max_s)
   if attack:
     names = tuple(a.strip() for a in attack.split(",") if a.strip())
     profiles = attacks.PROFILES if attack_type == "both" else (attack_type,)
@@ -62,18 +76,17 @@ def make_env(vehicle: str, max_duration=None, attack=None, attack_type="overt"):
 
 
 def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, mission_file=None,
-        max_duration=None, plot=None, env=None) -> dict:
+        max_duration=None, plot=None, env=None, params_file=None) -> dict:
   """Fly `missions` missions in `world`; returns the outcome dict printed by the CLI. Pass `env` (from make_env) to
-  reuse one compiled rollout across worlds."""
+  reuse one compiled rollout across worlds; otherwise mission_file / params_file build it (make_env)."""
   import jax
   import jax.numpy as jnp
   import numpy as np
 
-  env = env or make_env(vehicle, max_duration)
+  env = env or make_env(vehicle, max_duration, mission_file=mission_file, params_file=params_file)
   world_id = worlds_lib.PRESET_NAMES.index(world)
-  loaded = None
-  if mission_file is not None:
-    loaded = mission_files.load_mission(mission_file, vehicle, max_episode_s=env.config.max_episode_s)
+  if mission_file is not None and env.plan is None:
+    raise ValueError("fly(mission_file=...) with an env built without it: pass make_env(..., mission_file=...)")
   if batch <= 0:
     batch = missions if jax.default_backend() != "cpu" else min(missions, 64)
   max_steps = int(env.config.max_episode_s / env.dt) + 1
@@ -85,10 +98,7 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
     n = min(batch, missions - start)
     # Distinct missions per world and per batch, reproducible from --seed.
     keys = jax.random.split(jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), world_id), start), batch)
-    ms = None
-    if loaded is not None:
-      ms = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (batch,) + np.shape(x)), loaded)
-    state, traj, t = rollout.fly_batch(env, keys, max_steps, missions=ms,
+    state, traj, t = rollout.fly_batch(env, keys, max_steps,   # the env flies its plan (EnvConfig.mission_file)
                                        world_ids=jnp.full((batch,), world_id, jnp.int32))
     jax.block_until_ready(state.done)
     state = jax.tree.map(lambda x: x[:n], state)
@@ -109,6 +119,7 @@ def fly(vehicle: str, world: str, missions: int, seed: int = 0, batch: int = 0, 
       "violation_rate": totals["missions_violating"] / missions,
       "violations_per_spec": dict(zip(env.spec_names, totals["violations_per_spec"])),
       "mean_mission_time_s": float(np.mean(times)), "env_steps": steps_run,
+      "waypoints": int(np.max(np.asarray(first.info["mission"].n_waypoints))),
       "control_ticks": steps_run * env.config.ticks_per_step, "wall_s": wall,
       "env_steps_per_s": steps_run / max(wall, 1e-9), "backend": jax.default_backend(),
   }
@@ -128,18 +139,26 @@ def main(argv=None):
     _parser().error("--missions must be >= 1")
   if args.world != "all" and args.world not in worlds_lib.PRESETS:
     _parser().error(f"unknown world {args.world!r}; choose 'all' or one of: {', '.join(worlds_lib.PRESETS)}")
-  if args.mission is not None:
-    import os
-    if not os.path.exists(args.mission):
-      _parser().error(f"mission file not found: {args.mission}")
+  import os
+  for what, path in (("mission file", args.mission), ("parameter file", args.params)):
+    if path is not None and not os.path.isfile(path):
+      _parser().error(f"{what} not found: {path}")
+  if args.max_waypoints < 1:
+    _parser().error("--max-waypoints must be >= 1")
+  if args.max_s is not None and not 0 < args.max_s < float("inf"):
+    _parser().error("--max-s must be a finite number of seconds > 0")
   names = list(worlds_lib.PRESETS) if args.world == "all" else [args.world]
   results = []
   try:
     with warnings.catch_warnings():   # a mission file's warning: one line on stderr
       warnings.showwarning = lambda message, *_, **__: print(f"warning: {message}", file=sys.stderr)
       if args.mission is not None:   # a bad file fails before the env is built
-        mission_files.load_mission(args.mission, args.vehicle)
-      env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type)
+        mission_files.load_plan(args.mission, args.vehicle, max_waypoints=args.max_waypoints,
+                                **({} if args.max_s is None else {"max_episode_s": args.max_s}))
+      with warnings.catch_warnings():   # the file's notices were printed by the check above
+        warnings.simplefilter("ignore", mission_files.MissionFileWarning)
+        env = make_env(args.vehicle, args.max_duration, args.attack, args.attack_type, args.mission, args.params,
+                       args.max_waypoints, args.max_s)
       for i, name in enumerate(names):
         results.append(fly(args.vehicle, name, args.missions, args.seed, args.batch, args.mission, args.max_duration,
                            args.plot if i == 0 else None, env=env))

@@ -32,14 +32,14 @@ MIN_TURN_DEG = 30.0        # a sharpest turn below this is no hazard
 
 def nominal_track(mission: missions_lib.Mission, cfg: missions_lib.MissionConfig,
                   samples: int = SAMPLES_PER_SEGMENT):
-  """The nominal path sampled in time: (points [P, 3] m, times [P] s, segment end times [MAX_WAYPOINTS + 2] s).
+  """The nominal path sampled in time: (points [P, 3] m, times [P] s, segment end times [W + 2] s for W waypoint slots).
 
   Segments (missions.path_polyline): home -> take-off point (climb), take-off point -> waypoint 0, waypoint k-1 ->
   k (cruise; padded slots are degenerate), last waypoint -> landing point (descent); the loiter time is spent at the
-  end of the segment into the loiter waypoint. P = (MAX_WAYPOINTS + 2) * samples. The last segment ends at the
+  end of the segment into the loiter waypoint. P = (W + 2) * samples. The last segment ends at the
   mission's nominal_duration."""
   pts, _ = missions_lib.path_polyline(mission)
-  a, b = pts[:-1], pts[1:]                                             # [S, 3], S = MAX_WAYPOINTS + 2
+  a, b = pts[:-1], pts[1:]                                             # [S, 3], S = W + 2
   length = jnp.linalg.norm(b - a, axis=-1)
   n_seg = a.shape[0]
   seg = jnp.arange(n_seg)

@@ -14,8 +14,26 @@ waypoint; lat = lon = 0 means land in place), 20 NAV_RETURN_TO_LAUNCH (adds a wa
 drones) and 178 DO_CHANGE_SPEED (p2 m/s; one speed per mission). Without a take-off item a drone takes off to its first
 waypoint's altitude. The cruise speed otherwise is the middle of MissionConfig.cruise_speed: the .plan file's
 cruiseSpeed / hoverSpeed are QGC defaults more often than intent and are ignored. Deadlines follow
-`missions.mission_timing` exactly like generated missions. ComplexItems (survey, corridor/structure scan), geofence
-and rally points in .plan files are not supported (ComplexItems are rejected).
+`missions.mission_timing` exactly like generated missions.
+
+Mission length: any number of waypoints up to `max_waypoints` (MAX_FILE_WAYPOINTS = 1000 unless given; more is a
+one-line error, never a silent truncation). The waypoint array has max(MissionConfig.max_waypoints, n) slots: a short
+file has the generated missions' shape, a long one exactly its own length.
+
+Home: a home at lat = lon = 0 (QGC writes it when no vehicle position is known) is replaced by the first item with a
+position (a one-line MissionFileWarning says so). If that item is itself at 0, 0, the file's coordinates are a local
+frame around 0, 0 (a simulator's) and lat = lon = 0 is a real position in it; otherwise, as in QGC, it means "none".
+
+.plan extras (`load_plan`):
+  * ComplexItem "survey": expanded into lawn-mower waypoints over its polygon (`survey_waypoints`): transects along
+    `angle` (degrees clockwise from north) spaced CameraCalc.AdjustedFootprintSide apart (else `spacing` /
+    `grid.spacing`), centred on the polygon, flown alternately, two waypoints per transect where it enters and
+    leaves the polygon, at CameraCalc.DistanceToSurface (relative to home unless
+    DistanceToSurfaceRelative is false); QGC's turnaround distance and camera triggers are left out. Other complex
+    items (corridor scan, structure scan) are a one-line error naming the item and its type.
+  * geoFence polygons and circles (inclusion and exclusion): the mission's fence geometry (envs.geofence.Geofence),
+    which replaces the generated world's fences when the env flies the plan.
+  * rallyPoints: [R, 3] positions (altitude relative to home; 0 for rovers) for the recovery controllers.
 
 Checks (every value must also be finite; JSON's NaN / Infinity and booleans are refused where numbers belong):
   * latitudes in [-90, 90], longitudes in [-180, 180], the home altitude in [MIN_HOME_AMSL_M, MAX_HOME_AMSL_M];
@@ -42,8 +60,8 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
-from envs.base import EnvConfig
-from envs.missions import MAX_WAYPOINTS, Mission, MissionConfig, mission_timing
+from envs import geofence as geofence_lib
+from envs.missions import DEFAULT_EPISODE_CAP_S, Mission, MissionConfig, mission_timing
 from specguard_jax.types import VEHICLES
 
 EARTH_RADIUS = 6378137.0
@@ -67,6 +85,9 @@ MIN_HOME_AMSL_M, MAX_HOME_AMSL_M = -500.0, 9_000.0  # home altitude above mean s
 MAX_SPEED_M_S = 30.0            # fastest DO_CHANGE_SPEED (m/s), above both vehicles' speed specs
 MAX_LOITER_S = 3_600.0          # longest NAV_LOITER_TIME (s)
 MAX_LOITER_RADIUS_M = 1_000.0   # widest loiter radius (m)
+MAX_FILE_WAYPOINTS = 1_000      # default limit on a file's waypoints (load_mission(max_waypoints=...) raises it)
+MAX_SURVEY_TRANSECTS = 500      # transects one survey item may expand into (a tiny spacing is a typo)
+MIN_FENCE_RADIUS_M = 0.1        # smallest geofence circle radius (m)
 
 
 class MissionFileError(ValueError):
@@ -98,6 +119,45 @@ class MissionItem:
   lat: float
   lon: float
   alt: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SurveyItem:
+  """A QGC survey complex item, expanded by `items_to_mission` (it needs the home position). polygon: ((lat, lon),
+  ...) degrees; angle_deg: transect direction, clockwise from north; spacing_m: between transects; alt: altitude
+  (above home if relative, else AMSL)."""
+
+  where: str
+  polygon: tuple
+  angle_deg: float
+  spacing_m: float
+  alt: float
+  relative: bool
+  command: int = CMD_WAYPOINT
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanExtras:
+  """A .plan's geoFence and rallyPoints as read (degrees, metres): polygons ((where, inclusion, ((lat, lon), ...)),
+  ...), circles ((where, inclusion, lat, lon, radius), ...), rally ((where, lat, lon, alt), ...)."""
+
+  polygons: tuple = ()
+  circles: tuple = ()
+  rally: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+  """A loaded mission file: the Mission, its geofence (envs.geofence.Geofence, empty for WPL files or a .plan
+  without geoFence) and rally points [R, 3] (m, numpy)."""
+
+  mission: Mission
+  geofence: geofence_lib.Geofence
+  rally_points: np.ndarray
+
+  @property
+  def has_fence(self) -> bool:
+    return self.geofence.n_zones > 0
 
 
 def latlon_to_enu(lat, lon, home_lat, home_lon):
@@ -157,14 +217,13 @@ def parse_wpl(text: str, name: str = "<string>"):
   if not rows:
     _fail(name, "", "no items (not even the home line)")
   _, h = rows[0]
-  if h[8] == 0.0 and h[9] == 0.0:
-    _fail(name, f"line {rows[0][0]}", "home position (seq 0) has lat = lon = 0")
   items = [MissionItem(f"line {ln}", int(v[3]), int(v[2]), tuple(v[4:8]), v[8], v[9], v[10]) for ln, v in rows[1:]]
   return (h[8], h[9], h[10]), items
 
 
-def parse_plan(text: str, name: str = "<string>"):
-  """Parse QGC `.plan` JSON. Returns (home (lat, lon, alt_amsl), [MissionItem]); items numbered from 1."""
+def parse_plan(text: str, name: str = "<string>", extras: bool = False):
+  """Parse QGC `.plan` JSON. Returns (home (lat, lon, alt_amsl), [MissionItem | SurveyItem]), items numbered from 1,
+  and with extras=True also the PlanExtras (geoFence, rallyPoints)."""
   try:
     doc = json.loads(text, parse_constant=_JSONConstant)
   except json.JSONDecodeError as e:
@@ -186,8 +245,6 @@ def parse_plan(text: str, name: str = "<string>"):
     _fail(name, "", "missing or malformed 'mission.plannedHomePosition' [lat, lon, alt]")
   home = [_number(v, name, "", f"plannedHomePosition[{j}]", what)
           for j, (v, what) in enumerate(zip(home, ("latitude", "longitude", "altitude")))]
-  if home[0] == 0 and home[1] == 0:
-    _fail(name, "", "plannedHomePosition has lat = lon = 0")
   items = []
   for k, it in enumerate(mission["items"], start=1):
     where = f"item {k}"
@@ -195,7 +252,8 @@ def parse_plan(text: str, name: str = "<string>"):
       _fail(name, where, "not a JSON object")
     typ = it.get("type")
     if typ == "ComplexItem":
-      _fail(name, where, f"ComplexItem ({it.get('complexItemType', '?')}) not supported; use simple waypoints")
+      items.append(_complex_item(it, name, where))
+      continue
     if typ != "SimpleItem":
       _fail(name, where, f"unknown item type {typ!r}")
     cmd, frame, params = it.get("command"), it.get("frame", 3), it.get("params")
@@ -210,7 +268,118 @@ def parse_plan(text: str, name: str = "<string>"):
       else:
         vals.append(_number(v, name, where, f"param {j + 1}", _PLAN_PARAMS[j]))
     items.append(MissionItem(where, cmd, frame, tuple(vals[:4]), vals[4], vals[5], vals[6]))
-  return tuple(float(v) for v in home), items
+  home = tuple(float(v) for v in home)
+  return (home, items, _plan_extras(doc, name)) if extras else (home, items)
+
+
+def _complex_item(it: dict, name: str, where: str) -> SurveyItem:
+  """A ComplexItem: a survey as a SurveyItem; any other kind a one-line error naming it."""
+  kind = it.get("complexItemType")
+  if kind != "survey":
+    _fail(name, where, f"ComplexItem of type {str(kind)[:40]!r} is not supported (only 'survey' items are expanded "
+          "into waypoints): replace it by simple waypoints in QGroundControl")
+  poly = it.get("polygon")
+  if not isinstance(poly, list) or len(poly) < 3:
+    _fail(name, where, "survey 'polygon' must be a list of at least 3 [lat, lon] points")
+  pts = []
+  for j, v in enumerate(poly, start=1):
+    if not isinstance(v, list) or len(v) < 2:
+      _fail(name, where, f"survey polygon point {j} must be [lat, lon]")
+    pts.append(tuple(_number(x, name, where, f"survey polygon point {j}", m) for x, m in zip(v[:2], ("lat", "lon"))))
+  tsc = it.get("TransectStyleComplexItem") if isinstance(it.get("TransectStyleComplexItem"), dict) else {}
+  cam = tsc.get("CameraCalc") if isinstance(tsc.get("CameraCalc"), dict) else {}
+  grid = it.get("grid") if isinstance(it.get("grid"), dict) else {}
+  spacing = next((v for v in (cam.get("AdjustedFootprintSide"), it.get("spacing"), grid.get("spacing"))
+                  if v is not None), None)
+  alt = next((v for v in (cam.get("DistanceToSurface"), grid.get("altitude")) if v is not None), None)
+  if spacing is None or alt is None:
+    _fail(name, where, "survey lacks its transect spacing (CameraCalc.AdjustedFootprintSide) or altitude "
+          "(CameraCalc.DistanceToSurface)")
+  spacing = _number(spacing, name, where, "survey transect spacing", "m")
+  if not spacing > 0:
+    _fail(name, where, f"survey transect spacing must be > 0 m, got {spacing:g}")
+  angle = _number(it.get("angle", grid.get("angle", 0.0)), name, where, "survey angle", "degrees")
+  relative = cam.get("DistanceToSurfaceRelative", grid.get("relativeAltitude", True))
+  return SurveyItem(where, tuple(pts), angle, spacing, _number(alt, name, where, "survey altitude", "m"),
+                    bool(relative))
+
+
+def _latlon_pair(v, name, where, field):
+  if not isinstance(v, list) or len(v) < 2:
+    _fail(name, where, f"{field} must be [lat, lon]")
+  return tuple(_number(x, name, where, field, m) for x, m in zip(v[:2], ("latitude", "longitude")))
+
+
+def _plan_extras(doc: dict, name: str) -> PlanExtras:
+  """The geoFence polygons / circles and rallyPoints of a .plan document, checked for shape and finite numbers."""
+  polys, circles, rally = [], [], []
+  fence = doc.get("geoFence", {})
+  if fence is None:
+    fence = {}
+  if not isinstance(fence, dict):
+    _fail(name, "geoFence", "must be a JSON object")
+  for key in ("polygons", "circles"):
+    if not isinstance(fence.get(key, []), list):
+      _fail(name, "geoFence", f"'{key}' must be a list")
+  for k, p in enumerate(fence.get("polygons", []), start=1):
+    where = f"geoFence polygon {k}"
+    if not isinstance(p, dict) or not isinstance(p.get("polygon"), list) or len(p["polygon"]) < 3:
+      _fail(name, where, "must be an object with a 'polygon' list of at least 3 [lat, lon] points")
+    pts = tuple(_latlon_pair(v, name, where, f"point {j}") for j, v in enumerate(p["polygon"], start=1))
+    polys.append((where, bool(p.get("inclusion", True)), pts))
+  for k, c in enumerate(fence.get("circles", []), start=1):
+    where = f"geoFence circle {k}"
+    circ = c.get("circle") if isinstance(c, dict) else None
+    if not isinstance(circ, dict):
+      _fail(name, where, "must be an object with a 'circle': {'center': [lat, lon], 'radius': m}")
+    lat, lon = _latlon_pair(circ.get("center"), name, where, "center")
+    r = _number(circ.get("radius"), name, where, "radius", "m")
+    if not r >= MIN_FENCE_RADIUS_M:
+      _fail(name, where, f"radius {r:g} m is below {MIN_FENCE_RADIUS_M:g} m")
+    circles.append((where, bool(c.get("inclusion", True)), lat, lon, r))
+  rp = doc.get("rallyPoints", {}) or {}
+  if not isinstance(rp, dict) or not isinstance(rp.get("points", []), list):
+    _fail(name, "rallyPoints", "must be an object with a 'points' list of [lat, lon, alt]")
+  for k, v in enumerate(rp.get("points", []), start=1):
+    where = f"rally point {k}"
+    if not isinstance(v, list) or len(v) != 3:
+      _fail(name, where, "must be [lat, lon, alt]")
+    rally.append((where,) + tuple(_number(x, name, where, f, f) for x, f in zip(v, ("latitude", "longitude",
+                                                                                   "altitude"))))
+  return PlanExtras(tuple(polys), tuple(circles), tuple(rally))
+
+
+def survey_waypoints(polygon_xy, angle_deg: float, spacing: float):
+  """Lawn-mower waypoints [2K, 2] (m) covering the polygon polygon_xy [V, 2] (ENU): K = ceil(width / spacing)
+  transects along the direction angle_deg clockwise from north, `spacing` m apart and centred on the polygon's
+  extent across them (so each covers half a spacing either side; one line through the middle when the polygon is
+  narrower than a spacing), each entered and left where it crosses the polygon's outline first and last, flown
+  alternately (boustrophedon)."""
+  poly = np.asarray(polygon_xy, np.float64)
+  a = math.radians(angle_deg)
+  d = np.array([math.sin(a), math.cos(a)])      # along the transects (east, north)
+  n = np.array([math.cos(a), -math.sin(a)])     # across them
+  across = poly @ n
+  lo, hi = float(across.min()), float(across.max())
+  k = max(1, math.ceil((hi - lo) / spacing - 1e-6))
+  if k > MAX_SURVEY_TRANSECTS:
+    raise ValueError(f"{k} transects (more than {MAX_SURVEY_TRANSECTS}): spacing {spacing:g} m is too small for a "
+                     f"{hi - lo:.0f} m wide polygon")
+  offsets = [0.5 * (lo + hi) + spacing * (j - 0.5 * (k - 1)) for j in range(k)]
+  a_pts, b_pts = poly, np.roll(poly, -1, axis=0)
+  out = []
+  for j, o in enumerate(offsets):
+    s_a, s_b = a_pts @ n - o, b_pts @ n - o
+    ts = []
+    for pa, pb, sa, sb in zip(a_pts, b_pts, s_a, s_b):
+      if (sa <= 0 < sb) or (sb <= 0 < sa):
+        p = pa + (pb - pa) * (sa / (sa - sb))
+        ts.append(float(p @ d))
+    if len(ts) < 2:
+      continue
+    t0, t1 = (min(ts), max(ts)) if j % 2 == 0 else (max(ts), min(ts))
+    out += [o * n + t0 * d, o * n + t1 * d]
+  return np.asarray(out, np.float64).reshape(-1, 2)
 
 
 def _json_type(v) -> str:
@@ -238,13 +407,40 @@ def _number(v, name: str, where: str, field: str, meaning: str) -> float:
 # Items -> Mission
 
 
+def _positioned(it) -> bool:
+  return (isinstance(it, SurveyItem) or (it.command in _NAV_COMMANDS and math.isfinite(it.lat)
+                                         and math.isfinite(it.lon)))
+
+
+def resolve_home(home, items, name: str = "<string>"):
+  """(home (lat, lon, alt), zero_is_position): a home at lat = lon = 0 replaced by the first positioned item's lat/lon
+  (a one-line MissionFileWarning), see the module docstring; zero_is_position: lat = lon = 0 is a real position."""
+  if not (home[0] == 0.0 and home[1] == 0.0):
+    return tuple(home), False
+  first = next((it for it in items if _positioned(it)), None)
+  if first is None:
+    _fail(name, "", "home position has lat = lon = 0 and no item has a position to take it from")
+  lat, lon = first.polygon[0] if isinstance(first, SurveyItem) else (first.lat, first.lon)
+  zero = lat == 0.0 and lon == 0.0
+  warnings.warn(f"{name}: home at lat = lon = 0 (no home known): home taken from {first.where} at lat {lat:.7f}, "
+                f"lon {lon:.7f}" + (" (a local frame around 0, 0: zero coordinates are positions)" if zero else ""),
+                MissionFileWarning, stacklevel=3)
+  return (float(lat), float(lon), float(home[2])), zero
+
+
 def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = "<string>",
-                     max_episode_s: float | None = None, strict: bool = False) -> Mission:
+                     max_episode_s: float | None = None, strict: bool = False, max_waypoints: int | None = None,
+                     zero_is_position: bool | None = None) -> Mission:
   """Interpret parsed items (see module docstring) as a Mission for `vehicle` ("drone" | "rover").
 
   max_episode_s: the episode cap the mission must fit in (s; EnvConfig's default if None); a longer nominal duration
-  warns (MissionFileWarning) or, with strict=True, raises MissionFileError."""
+  warns (MissionFileWarning) or, with strict=True, raises MissionFileError. max_waypoints: the most waypoints
+  accepted (MAX_FILE_WAYPOINTS if None). zero_is_position: `resolve_home`'s flag when home is already resolved
+  (None: resolved here)."""
   rover = vehicle == "rover"
+  limit = MAX_FILE_WAYPOINTS if max_waypoints is None else int(max_waypoints)
+  if zero_is_position is None:
+    home, zero_is_position = resolve_home(home, items, name)
   home_lat, home_lon, home_alt = home
   if not (-90 <= home_lat <= 90 and -180 <= home_lon <= 180):
     _fail(name, "", f"home position lat {home_lat}, lon {home_lon} is outside [-90, 90] x [-180, 180] degrees")
@@ -294,12 +490,42 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
     return [x, y, height(it) if with_altitude else 0.0]
 
   def has_latlon(it):
-    return math.isfinite(it.lat) and math.isfinite(it.lon) and not (it.lat == 0.0 and it.lon == 0.0)
+    return (math.isfinite(it.lat) and math.isfinite(it.lon)
+            and (zero_is_position or not (it.lat == 0.0 and it.lon == 0.0)))
+
+  def survey(it):
+    """The survey's lawn-mower waypoints, [x, y, z] each."""
+    for j, (lat, lon) in enumerate(it.polygon, start=1):
+      if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        _fail(name, it.where, f"survey polygon point {j} lat {lat}, lon {lon} is outside [-90, 90] x [-180, 180]")
+    xy = np.stack(latlon_to_enu([p[0] for p in it.polygon], [p[1] for p in it.polygon], home_lat, home_lon), -1)
+    if np.max(np.hypot(xy[:, 0], xy[:, 1])) > MAX_HOME_DISTANCE_M:
+      _fail(name, it.where, f"survey polygon reaches farther than {MAX_HOME_DISTANCE_M / 1000:g} km from home")
+    try:
+      pts = survey_waypoints(xy, it.angle_deg, it.spacing_m)
+    except ValueError as e:
+      _fail(name, it.where, f"survey: {e}")
+    if not len(pts):
+      _fail(name, it.where, "survey polygon has no area to cover (degenerate polygon)")
+    z = 0.0
+    if not rover:
+      z = it.alt if it.relative else it.alt - home_alt
+      if not 0 < z <= MAX_ALTITUDE_M:
+        _fail(name, it.where, f"survey altitude {z:.2f} m above home is not in (0, {MAX_ALTITUDE_M:g}] m")
+    return [[float(x), float(y), float(z)] for x, y in pts]
 
   def current_alt():
     return wps[-1][2] if wps else (takeoff_alt or 0.0)
 
   for it in items:
+    if isinstance(it, SurveyItem):
+      if ended_by is not None:
+        _fail(name, it.where, f"survey after {ended_by}, which ends the mission")
+      wps.extend(survey(it))
+      if len(wps) > limit:
+        _fail(name, it.where, f"too many waypoints (more than {limit}; the limit is load_mission's max_waypoints, "
+              "--max-waypoints on the command line)")
+      continue
     cmd = it.command
     if cmd not in COMMAND_NAMES:
       _fail(name, it.where, f"unsupported command {cmd} (supported: {sorted(COMMAND_NAMES)})")
@@ -356,8 +582,9 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
     elif cmd == CMD_RTL:
       wps.append([0.0, 0.0, 0.0 if rover else current_alt()])
       land, ended_by = (0.0 if rover else 1.0), cname
-    if len(wps) > MAX_WAYPOINTS:
-      _fail(name, it.where, f"too many waypoints (more than {MAX_WAYPOINTS})")
+    if len(wps) > limit:
+      _fail(name, it.where, f"too many waypoints (more than {limit}; the limit is load_mission's max_waypoints, "
+            "--max-waypoints on the command line)")
 
   if not wps:
     _fail(name, "", "empty mission (no navigation waypoints)")
@@ -366,7 +593,7 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
   elif takeoff_alt is None:
     takeoff_alt = wps[0][2]
   n = len(wps)
-  arr = np.zeros((MAX_WAYPOINTS, 3), np.float32)
+  arr = np.zeros((max(cfg.max_waypoints, n), 3), np.float32)
   arr[:n] = wps
   arr[n:] = wps[-1]
   cruise = next(iter(speeds)) if speeds else 0.5 * (cfg.cruise_speed[0] + cfg.cruise_speed[1])
@@ -374,7 +601,7 @@ def items_to_mission(home, items, vehicle: str, cfg: MissionConfig, name: str = 
   home_v, wp_v, n_v = f32(np.zeros(3)), f32(arr), jnp.int32(n)
   lw, lt, ld, to = jnp.int32(loiter_wp), f32(loiter_time), f32(land), f32(takeoff_alt)
   window_open, deadline, duration = mission_timing(home_v, wp_v, n_v, to, f32(cruise), lw, lt, ld, cfg)
-  cap = EnvConfig.max_episode_s if max_episode_s is None else float(max_episode_s)
+  cap = DEFAULT_EPISODE_CAP_S if max_episode_s is None else float(max_episode_s)
   if not float(duration) <= cap:
     problem = (f"the mission's nominal duration {float(duration):.0f} s exceeds the episode cap of {cap:g} s "
                "(EnvConfig.max_episode_s): it cannot finish within an episode")
@@ -396,28 +623,65 @@ def _config(vehicle, cfg):
   return cfg
 
 
-def loads_mission(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None = None,
-                  name: str = "<string>", max_episode_s: float | None = None, strict: bool = False) -> Mission:
-  """Load a mission from file contents; fmt: "wpl" (QGC WPL 110) or "plan" (.plan JSON). max_episode_s, strict: see
-  `items_to_mission`."""
+def extras_to_geofence(extras: PlanExtras, home, vehicle: str, name: str = "<string>"):
+  """(Geofence, rally points [R, 3] m) of a .plan's PlanExtras about `home` (lat, lon, alt AMSL; resolved). Every
+  point must lie within MAX_HOME_DISTANCE_M of home; rally altitudes are above home (0 for rovers). Inclusion zones
+  combine as the vehicle's autopilot does (envs.geofence: PX4 for the drone, ArduPilot for the rover)."""
+  home_lat, home_lon = home[0], home[1]
+
+  def xy(where, lat, lon):
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+      _fail(name, where, f"lat {lat}, lon {lon} is outside [-90, 90] x [-180, 180] degrees")
+    x, y = (float(v) for v in latlon_to_enu(lat, lon, home_lat, home_lon))
+    if math.hypot(x, y) > MAX_HOME_DISTANCE_M:
+      _fail(name, where, f"lat {lat}, lon {lon} is {math.hypot(x, y) / 1000:.1f} km from home (at most "
+            f"{MAX_HOME_DISTANCE_M / 1000:g} km)")
+    return [x, y]
+
+  polys = [[xy(where, lat, lon) for lat, lon in pts] for where, _, pts in extras.polygons]
+  circles = [xy(where, lat, lon) + [r] for where, _, lat, lon, r in extras.circles]
+  fence = geofence_lib.make_geofence(polys, [inc for _, inc, _ in extras.polygons], circles,
+                                     [inc for _, inc, *_ in extras.circles], any_inclusion=vehicle == "drone")
+  rally = np.asarray([xy(where, lat, lon) + [0.0 if vehicle == "rover" else float(alt)]
+                      for where, lat, lon, alt in extras.rally], np.float32).reshape(-1, 3)
+  return fence, rally
+
+
+def loads_plan(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None = None, name: str = "<string>",
+               max_episode_s: float | None = None, strict: bool = False, max_waypoints: int | None = None) -> Plan:
+  """Load a Plan (mission, geofence, rally points) from file contents; fmt: "wpl" (QGC WPL 110: no geofence or rally
+  points) or "plan" (.plan JSON). max_episode_s, strict, max_waypoints: see `items_to_mission`."""
   cfg = _config(vehicle, cfg)
   if fmt == "wpl":
     home, items = parse_wpl(text, name)
+    extras = PlanExtras()
   elif fmt == "plan":
-    home, items = parse_plan(text, name)
+    home, items, extras = parse_plan(text, name, extras=True)
   else:
     raise ValueError(f"fmt must be 'wpl' or 'plan', got {fmt!r}")
-  return items_to_mission(home, items, vehicle, cfg, name, max_episode_s, strict)
+  home, zero = resolve_home(home, items, name)
+  mission = items_to_mission(home, items, vehicle, cfg, name, max_episode_s, strict, max_waypoints, zero)
+  fence, rally = extras_to_geofence(extras, home, vehicle, name)
+  return Plan(mission, fence, rally)
 
 
-def load_mission(path, vehicle: str, cfg: MissionConfig | None = None, max_episode_s: float | None = None,
-                 strict: bool = False) -> Mission:
-  """Load a `.plan` (JSON) or QGC WPL 110 (`.waypoints` / `.txt` / `.mission`) file as a Mission (home at origin).
+def loads_mission(text: str, fmt: str, vehicle: str, cfg: MissionConfig | None = None,
+                  name: str = "<string>", max_episode_s: float | None = None, strict: bool = False,
+                  max_waypoints: int | None = None) -> Mission:
+  """The Mission of `loads_plan` (its geofence and rally points dropped)."""
+  return loads_plan(text, fmt, vehicle, cfg, name, max_episode_s, strict, max_waypoints).mission
+
+
+def load_plan(path, vehicle: str, cfg: MissionConfig | None = None, max_episode_s: float | None = None,
+              strict: bool = False, max_waypoints: int | None = None) -> Plan:
+  """Load a `.plan` (JSON) or QGC WPL 110 (`.waypoints` / `.txt` / `.mission`) file as a Plan: the Mission (home at
+  the origin), the .plan's geofence and rally points.
 
   vehicle: "drone" | "rover"; cfg: timing/acceptance defaults (MissionConfig.drone()/rover() if None).
   max_episode_s: the episode cap the mission must fit in (s; EnvConfig's default if None); strict: a mission that
-  cannot finish within it raises instead of warning. The format is JSON for a .plan file or text starting with '{' or
-  '[' (a JSON plan), else WPL. Raises MissionFileError on bad files (see the module docstring for the checks).
+  cannot finish within it raises instead of warning; max_waypoints: the most waypoints accepted (MAX_FILE_WAYPOINTS).
+  The format is JSON for a .plan file or text starting with '{' or '[' (a JSON plan), else WPL. Raises
+  MissionFileError on bad files (see the module docstring for the checks).
   """
   path = os.fspath(path)
   name = os.path.basename(path)
@@ -427,7 +691,13 @@ def load_mission(path, vehicle: str, cfg: MissionConfig | None = None, max_episo
   except (OSError, UnicodeDecodeError) as e:
     raise MissionFileError(f"{name}: cannot read: {e}") from None
   is_json = os.path.splitext(path)[1].lower() == ".plan" or text.lstrip()[:1] in ("{", "[")
-  return loads_mission(text, "plan" if is_json else "wpl", vehicle, cfg, name, max_episode_s, strict)
+  return loads_plan(text, "plan" if is_json else "wpl", vehicle, cfg, name, max_episode_s, strict, max_waypoints)
+
+
+def load_mission(path, vehicle: str, cfg: MissionConfig | None = None, max_episode_s: float | None = None,
+                 strict: bool = False, max_waypoints: int | None = None) -> Mission:
+  """The Mission of `load_plan` (see there)."""
+  return load_plan(path, vehicle, cfg, max_episode_s, strict, max_waypoints).mission
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -1,14 +1,16 @@
 """Mission plans: the `Mission` pytree, a procedural generator and path helpers (jittable, vmappable).
 
 A mission is what a QGroundControl plan gives PX4 / ArduPilot: a home position on the ground, a take-off altitude
-(drones), up to `MAX_WAYPOINTS` waypoints the autopilot flies THROUGH (no stop at intermediate waypoints), an optional
+(drones), waypoints the autopilot flies THROUGH (no stop at intermediate waypoints; W slots, see Padding), an optional
 loiter at one waypoint and an optional landing at the last waypoint. On top of that SpecGuard's S5 ("navigate
 through waypoints", F_[t_i, t_j](dist_wp < 5)) needs a time window per waypoint: `window_open` / `deadline`.
 
 Frames: world ENU (x east, y north, z up), ground at z = 0, metres; times in s from mission start.
 Rovers: every z is 0 (the env adds the body height), takeoff_alt = 0, land = 0, no loiter.
 Padding: waypoint slots k >= n_waypoints repeat the last valid waypoint (and its window/deadline), so polylines
-through all slots are geometrically the true path plus degenerate segments.
+through all slots are geometrically the true path plus degenerate segments. The slot count W is the waypoint array's
+own first axis: generated missions have `MissionConfig.max_waypoints` slots, loaded mission files as many as they need
+(envs.mission_files); every helper here reads W from the array, so one jitted program serves one slot count.
 """
 
 from __future__ import annotations
@@ -23,7 +25,12 @@ from flax import struct
 from specguard_jax.types import VEHICLES
 
 MAX_WAYPOINTS = 12
-"""Waypoint slots per mission (fixed array size)."""
+"""Default waypoint slots per generated mission (`MissionConfig.max_waypoints`; the array is fixed-size, so every
+slot costs work in every env step: the default stays small)."""
+
+DEFAULT_EPISODE_CAP_S = 400.0
+"""s: the default cap on an episode (envs.base.EnvConfig.max_episode_s), which loaded mission files are checked
+against unless given another."""
 
 PATH_KINDS = ("line", "circle", "polygon")
 """Generated path shapes, in the order of `MissionConfig.path_kind_probs`."""
@@ -34,10 +41,11 @@ class Mission:
   """One mission plan (add leading axes for a batch).
 
   home: [3] start position on the ground (z = 0), m.
-  waypoints: [MAX_WAYPOINTS, 3] waypoint positions, m (slots >= n_waypoints repeat the last valid waypoint).
+  waypoints: [W, 3] waypoint positions, m (slots >= n_waypoints repeat the last valid waypoint); W slots (module
+    docstring).
   n_waypoints: [] int32, number of valid waypoints (>= 1).
-  window_open: [MAX_WAYPOINTS] earliest time the waypoint counts as reached for S5, s.
-  deadline: [MAX_WAYPOINTS] latest time to reach the waypoint (within acceptance_radius), s; increasing.
+  window_open: [W] earliest time the waypoint counts as reached for S5, s.
+  deadline: [W] latest time to reach the waypoint (within acceptance_radius), s; increasing.
   takeoff_alt: [] take-off altitude above home, m (0 for rovers).
   cruise_speed: [] commanded horizontal speed between waypoints, m/s.
   acceptance_radius: [] waypoint acceptance radius, m.
@@ -90,8 +98,9 @@ class MissionConfig:
   deadline_factor: float = 1.5              # deadline = factor * nominal arrival + slack
   deadline_slack_s: float = 10.0
   window_open_factor: float = 0.5           # window_open = factor * nominal arrival (0: window open from t = 0)
-  min_duration_s: float = 60.0              # soft: waypoints are added (up to MAX_WAYPOINTS) to reach it
+  min_duration_s: float = 60.0              # soft: waypoints are added (up to max_waypoints) to reach it
   max_duration_s: float = 300.0             # hard (must exceed take-off + landing time): see generate_mission
+  max_waypoints: int = MAX_WAYPOINTS        # waypoint slots of a generated mission (the array's fixed size)
 
   @property
   def is_rover(self) -> bool:
@@ -115,9 +124,12 @@ class MissionConfig:
   def __post_init__(self):
     if self.vehicle not in VEHICLES:
       raise ValueError(f"MissionConfig.vehicle must be one of {', '.join(VEHICLES)}, got {self.vehicle!r}")
+    if isinstance(self.max_waypoints, bool) or not isinstance(self.max_waypoints, int) or self.max_waypoints < 1:
+      raise ValueError(f"MissionConfig.max_waypoints must be an integer >= 1, got {self.max_waypoints!r}")
     lo, hi = self.n_waypoints
-    if not 1 <= lo <= hi <= MAX_WAYPOINTS:
-      raise ValueError(f"n_waypoints {self.n_waypoints} must satisfy 1 <= lo <= hi <= {MAX_WAYPOINTS}")
+    if not 1 <= lo <= hi <= self.max_waypoints:
+      raise ValueError(f"n_waypoints {self.n_waypoints} must satisfy 1 <= lo <= hi <= max_waypoints "
+                       f"({self.max_waypoints})")
     if len(self.path_kind_probs) != len(PATH_KINDS) or min(self.path_kind_probs) < 0 or sum(self.path_kind_probs) <= 0:
       raise ValueError(f"path_kind_probs must be {len(PATH_KINDS)} non-negative weights")
     if not 0 < self.leg_length[0] <= self.leg_length[1]:
@@ -225,7 +237,7 @@ def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   polygon_turn_deg. Every turn is clipped to max_turn_deg. Waypoint altitudes are independent U(altitude), so the
   climb gradient is <= (alt_hi - alt_lo) / leg_lo (20 % by default). Home is the origin.
   """
-  m = MAX_WAYPOINTS
+  m = cfg.max_waypoints
   r = UniformPool(rng, 8 * m + 16)
   deg = math.pi / 180.0
   max_turn = cfg.max_turn_deg * deg
@@ -258,7 +270,7 @@ def generate_mission(cfg: MissionConfig, rng: jax.Array) -> Mission:
   land = jnp.where(r.bernoulli(cfg.p_land) & (not cfg.is_rover), 1.0, 0.0)
   loiter_u = r.take()
 
-  # Number of waypoints: requested count, raised (up to MAX_WAYPOINTS) to reach min_duration_s, then lowered
+  # Number of waypoints: requested count, raised (up to max_waypoints) to reach min_duration_s, then lowered
   # (down to 1) to respect max_duration_s. Candidate durations with k = 1..M waypoints (the loiter, placed below,
   # counts wherever it happens). max_duration_s is hard: a loiter that does not fit even with one waypoint is
   # dropped, then a single too-long first leg is shortened (flown level at takeoff_alt).
@@ -332,13 +344,13 @@ def mission_leg(mission: Mission, target_idx: jnp.ndarray):
 def path_polyline(mission: Mission):
   """The whole nominal path as a fixed-size polyline.
 
-  Returns (points [MAX_WAYPOINTS + 3, 3], valid [MAX_WAYPOINTS + 3] bool): home, take-off point, waypoints
+  Returns (points [W + 3, 3], valid [W + 3] bool) for W waypoint slots: home, take-off point, waypoints
   0..M-1, landing point. Invalid waypoint slots repeat the last valid waypoint, so every consecutive pair
   (valid or not) is a true sub-segment of the path (or a point on it): distance queries need no mask.
   """
   wps = _pad_waypoints(mission.waypoints, mission.n_waypoints)
   pts = jnp.concatenate([mission.home[None], takeoff_point(mission)[None], wps, landing_point(mission)[None]], 0)
-  k = jnp.arange(MAX_WAYPOINTS)
+  k = jnp.arange(wps.shape[0])
   valid = jnp.concatenate([jnp.ones(2, bool), k < mission.n_waypoints, jnp.ones(1, bool)])
   return pts, valid
 

@@ -1,4 +1,5 @@
-"""Matplotlib figures of a mission: top-down map (obstacles, fences, boundary, path, trajectory) + altitude."""
+"""Matplotlib figures of a mission: top-down map (obstacles, fences, boundary, the mission's own geofence zones and
+rally points, path, trajectory) + altitude."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ def plot_mission(path_png: str, world, mission, traj, title: str = "") -> None:
   import matplotlib.pyplot as plt
   from matplotlib.patches import Circle, Polygon, Rectangle
 
-  w = {k: np.asarray(v) for k, v in vars(world).items()}
+  w = {k: np.asarray(v) for k, v in vars(world).items() if k != "geofence"}
+  fence = getattr(world, "geofence", None)
   valid = np.asarray(traj["valid"])
   pos = np.asarray(traj["pos"])[valid]
   est = np.asarray(traj["est"])[valid]
@@ -38,6 +40,19 @@ def plot_mission(path_png: str, world, mission, traj, title: str = "") -> None:
   if "boundary" in w and bool(w.get("boundary_on", w.get("has_boundary", False))):
     xmin, xmax, ymin, ymax = w["boundary"]
     ax.add_patch(Rectangle((xmin, ymin), xmax - xmin, ymax - ymin, fill=False, edgecolor="red", lw=2, ls="--"))
+  if fence is not None:   # the mission's own zones: inclusion green dashed, exclusion red hatched
+    for poly, inc in zip(np.asarray(fence.polygons), np.asarray(fence.polygon_inclusion)):
+      ax.add_patch(Polygon(poly, closed=True, fill=not inc, facecolor="red", alpha=0.15 if not inc else 1.0,
+                           edgecolor="green" if inc else "red", lw=2, ls="--" if inc else "-",
+                           hatch=None if inc else "xx"))
+    for (cx, cy, r), inc in zip(np.asarray(fence.circles), np.asarray(fence.circle_inclusion)):
+      ax.add_patch(Circle((cx, cy), r, fill=not inc, facecolor="red", alpha=0.15 if not inc else 1.0,
+                          edgecolor="green" if inc else "red", lw=2, ls="--" if inc else "-"))
+    if fence.max_radius > 0:
+      ax.add_patch(Circle(home[:2], fence.max_radius, fill=False, edgecolor="green", lw=1.5, ls=":"))
+  rally = w.get("rally_points", np.zeros((0, 3)))
+  if len(rally):
+    ax.scatter(rally[:, 0], rally[:, 1], c="orange", marker="P", s=90, zorder=6, label="rally points")
   path = np.vstack([home[None], wps])
   ax.plot(path[:, 0], path[:, 1], "k--", lw=1, label="mission path")
   ax.scatter(wps[:, 0], wps[:, 1], c="k", marker="x", zorder=5)

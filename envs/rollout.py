@@ -31,7 +31,7 @@ def draw_paired_episode(env, key, settings, index):
   (no attack); index: [] int, which of them. The world is drawn uniformly from the env's `worlds`. Returns a State.
   """
   k_m, k_a, k_w, k_r = jax.random.split(key, 4)
-  m = missions_lib.generate_mission(env.mission_cfg, k_m)
+  m = env.sample_mission(k_m)
   cand = [attacks_lib.no_attack() if s is None else attacks_lib.sample_attack(
       attacks_lib.AttackConfig(sensors=(s[0],), profiles=(s[1],)), k_a, m.nominal_duration) for s in settings]
   atk = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float32) for v in x])[index], *cand)

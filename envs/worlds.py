@@ -21,8 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from envs import geofence as geofence_lib
 from envs import geometry as geo
-from envs.missions import MAX_WAYPOINTS, Mission, UniformPool, final_waypoint, landing_point, mission_leg, \
+from envs.missions import Mission, UniformPool, final_waypoint, landing_point, mission_leg, \
   path_polyline, takeoff_point
 
 MAX_CYLINDERS = 24
@@ -55,6 +56,10 @@ class World:
   ceiling: [] max allowed altitude (NO_CEILING = 1e3 outdoors).
   wind_mean: [3] mean wind velocity (horizontal), m/s; gust_std: [] std of gusts per axis, m/s.
   preset_id: [] int32 index into PRESET_NAMES (-1: custom preset).
+  geofence: the mission's own geofence zones (envs.geofence; a QGC plan's geoFence, a parameter file's home fence);
+    empty (zero-size arrays, no cost) for generated missions.
+  rally_points: [R, 3] the mission's rally points (a QGC plan's rallyPoints), m, where recovery controllers may
+    go to hold (specguard_jax.autopilot.fallback); R = 0 without.
   """
 
   cylinders: jnp.ndarray
@@ -71,6 +76,8 @@ class World:
   wind_mean: jnp.ndarray
   gust_std: jnp.ndarray
   preset_id: jnp.ndarray
+  geofence: geofence_lib.Geofence = struct.field(default_factory=geofence_lib.empty_geofence)
+  rally_points: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((0, 3), jnp.float32))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -300,7 +307,7 @@ def _path_clear(sdf, pts, mission: Mission, clearance):
   loiter_radius extra around the loiter waypoint). Returns [] bool."""
   ok = geo.polyline_clear(sdf, pts, clearance)
   lw = mission.loiter_wp
-  loiter_pt = mission.waypoints[jnp.clip(lw, 0, MAX_WAYPOINTS - 1)]
+  loiter_pt = mission.waypoints[jnp.clip(lw, 0, mission.waypoints.shape[0] - 1)]
   return ok & ((lw < 0) | (sdf(loiter_pt) >= clearance + mission.loiter_radius))
 
 
@@ -348,7 +355,7 @@ def generate_world(preset, mission: Mission, rng: jax.Array, clearance: float = 
 
   # Operating boundary: path bounding box (+ loiter disc) grown by the margin.
   lw = mission.loiter_wp
-  loiter_pt = mission.waypoints[jnp.clip(lw, 0, MAX_WAYPOINTS - 1)]
+  loiter_pt = mission.waypoints[jnp.clip(lw, 0, mission.waypoints.shape[0] - 1)]
   lr = jnp.where(lw >= 0, mission.loiter_radius, 0.0)
   lo = jnp.minimum(jnp.min(pts[:, :2], 0), loiter_pt[:2] - lr)
   hi = jnp.maximum(jnp.max(pts[:, :2], 0), loiter_pt[:2] + lr)
@@ -511,12 +518,29 @@ def obstacle_queries(world: World, points: jnp.ndarray, pos: jnp.ndarray):
   return jnp.minimum(pc, pb), jnp.minimum(jnp.minimum(dc, db), geo.FAR), jnp.where(dc <= db, gc, gb)
 
 
+def with_geofence(world: World, fence: geofence_lib.Geofence, max_alt=None, replace_fences: bool = False,
+                  rally_points=None) -> World:
+  """`world` with a mission's own geofence (envs.geofence) and rally points [R, 3] (unbatched or batched alike).
+  max_alt: a maximum altitude above home (m) that lowers the ceiling (None: unchanged). replace_fences: the generated
+  keep-out prisms and operating boundary are dropped (a plan's geoFence is the mission's fence geometry); obstacles,
+  the ceiling and the weather stay."""
+  out = world.replace(geofence=fence)
+  if max_alt is not None:
+    out = out.replace(ceiling=jnp.minimum(out.ceiling, jnp.float32(max_alt)))
+  if replace_fences:
+    out = out.replace(fence_mask=jnp.zeros_like(out.fence_mask), boundary_on=jnp.zeros_like(out.boundary_on))
+  if rally_points is not None:
+    out = out.replace(rally_points=jnp.asarray(rally_points, jnp.float32))
+  return out
+
+
 def fence_distances(world: World, pos: jnp.ndarray):
   """(margin, h, v) of pos [3] w.r.t. the nearest forbidden region, uncapped; > 0 on the allowed side, m.
 
   Regions: keep-out prisms (margin = exact 3D SDF, h = footprint SDF, v = z - top), outside the operating boundary
-  (margin = h = signed distance to the rectangle edge, v = 1e3) and above the ceiling (margin = v = ceiling - z,
-  h = 1e3). "Nearest" = smallest margin; its h and v are returned. 1e3 everywhere if there is no fence.
+  (margin = h = signed distance to the rectangle edge, v = 1e3), above the ceiling (margin = v = ceiling - z,
+  h = 1e3) and the mission's own geofence zones (2D: margin = h = envs.geofence.zone_margins, v = 1e3).
+  "Nearest" = smallest margin; its h and v are returned. 1e3 everywhere if there is no fence.
   """
   z = pos[2]
   pm = jax.vmap(geo.sdf_box, (None, 0, 0))(pos, world.fences, world.fence_axes)
@@ -525,9 +549,12 @@ def fence_distances(world: World, pos: jnp.ndarray):
   far = jnp.full((1,), geo.FAR)
   bh = jnp.where(world.boundary_on, geo.rect_inside_margin(pos[:2], world.boundary), geo.FAR)[None]
   cv = (world.ceiling - z)[None]
-  margins = jnp.concatenate([jnp.where(world.fence_mask, pm, geo.FAR), bh, cv])
-  hs = jnp.concatenate([ph, bh, far])
-  vs = jnp.concatenate([pv, far, cv])
+  margins = [jnp.where(world.fence_mask, pm, geo.FAR), bh, cv]
+  hs, vs = [ph, bh, far], [pv, far, cv]
+  if world.geofence.active:   # static: a generated mission's world has no zones
+    zm = geofence_lib.zone_margins(world.geofence, pos[:2])[None]
+    margins, hs, vs = margins + [zm], hs + [zm], vs + [far]
+  margins, hs, vs = jnp.concatenate(margins), jnp.concatenate(hs), jnp.concatenate(vs)
   i = jnp.argmin(margins)
   return margins[i], hs[i], vs[i]
 

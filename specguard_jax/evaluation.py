@@ -199,7 +199,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
 
   def reset_one(j, sid):
     k_m, k_a, k_w, k_r = jax.random.split(jax.random.fold_in(key, j), 4)
-    mission = missions_lib.generate_mission(env.mission_cfg, k_m)
+    mission = env.sample_mission(k_m)   # EnvConfig.mission_file's plan, else a generated mission
     k_h = jax.random.fold_in(k_a, _HAZARD_SALT)
     k_a = jax.random.fold_in(k_a, salts[sid])
     wid = world_ids[jax.random.randint(k_w, (), 0, len(env.world_ids))]

@@ -71,6 +71,8 @@ TRAIN_CASES = [
     (["--coordinator", "host0:99999", "--num-processes", "2", "--process-id", "1"], "port '99999' is not in 1-65535"),
     (["--coordinator", "host0:1234", "--num-processes", "0", "--process-id", "0"], "--num-processes must be >= 1"),
     (["--coordinator", "127.0.0.1:$BUSY", "--num-processes", "2", "--process-id", "0"], "is in use on this host"),
+    (["--params", "$T/afile"], "$T/afile:1: cannot parse 'x'"),
+    (["--mission", "$T/list.json"], "list.json: not a .plan object"),
 ]
 
 EVALUATE_CASES = [
@@ -87,6 +89,9 @@ EVALUATE_CASES = [
     (["--missions", "100000000000"], "--missions 100000000000 is not allowed"),
     (["--traj", "-1"], "--traj must be >= 0"),
     (["--controllers", ","], "--controllers ',' names none"),
+    (["--mission", "$T/none.plan"], "--mission: file not found: $T/none.plan"),
+    (["--params", "$T/afile"], "$T/afile:1: cannot parse 'x'"),
+    (["--mission", "$T/list.json"], "list.json: not a .plan object"),
 ]
 
 

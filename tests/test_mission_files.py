@@ -105,7 +105,6 @@ WP1 = "1\t0\t3\t16\t0\t0\t0\t0\t49.2612\t-123.246\t15\t1"
    r"m.txt: line 5: NAV_WAYPOINT after NAV_LAND"),
   (_wpl(WP1, "2\t0\t3\t22\t0\t0\t0\t0\t0\t0\t15\t1"), r"m.txt: line 4: NAV_TAKEOFF must come before"),
   (_wpl(WP1, "2\t0\t3\t19\t0\t0\t0\t0\t0\t0\t15\t1"), r"m.txt: line 4: NAV_LOITER_TIME time .* must be > 0"),
-  ("QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t0\t0\t80\t1\n" + WP1, r"m.txt: line 2: home position"),
 ])
 def test_broken_wpl(tmp_path, text, pattern):
   p = tmp_path / "m.txt"
@@ -120,11 +119,31 @@ def test_too_many_waypoints(tmp_path):
   rows = [f"{i}\t0\t3\t16\t0\t0\t0\t0\t{49.2606 + 0.0005 * i:.7f}\t-123.246\t15\t1" for i in range(1, 15)]
   p = tmp_path / "long.waypoints"
   p.write_text(_wpl(*rows))
-  msg = rf"long.waypoints: line 15: too many waypoints \(more than {MAX_WAYPOINTS}\)"
+  msg = r"long.waypoints: line 14: too many waypoints \(more than 11; the limit is load_mission's max_waypoints"
   with pytest.raises(MissionFileError, match=msg):
-    load_mission(p, "drone")
-  p.write_text(_wpl(*rows[:MAX_WAYPOINTS]))
-  assert int(load_mission(p, "drone").n_waypoints) == MAX_WAYPOINTS
+    load_mission(p, "drone", max_waypoints=11)
+  m = load_mission(p, "drone")   # longer than the generated missions' slots: the array is the file's own length
+  assert int(m.n_waypoints) == 14 and m.waypoints.shape == (14, 3) and m.deadline.shape == (14,)
+  p.write_text(_wpl(*rows[:3]))
+  assert load_mission(p, "drone").waypoints.shape == (MAX_WAYPOINTS, 3)   # short: the generated missions' shape
+
+
+def test_home_at_zero(tmp_path):
+  """A home at 0, 0 is taken from the first positioned item, with one notice; a file whose first position is 0, 0
+  itself (a simulator's frame around 0, 0) keeps zero coordinates as positions."""
+  p = tmp_path / "m.txt"
+  p.write_text("QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t0\t0\t80\t1\n" + WP1
+               + "\n2\t0\t3\t16\t0\t0\t0\t0\t49.2615\t-123.246\t15\t1\n")
+  with pytest.warns(mf.MissionFileWarning, match=r"m.txt: home at lat = lon = 0 .*home taken from line 3"):
+    m = _np(load_mission(p, "drone"))
+  np.testing.assert_allclose(m.waypoints[:2, :2], [[0, 0], [0, 6378137.0 * math.radians(0.0003)]], atol=1e-3)
+  rows = ["1\t0\t3\t16\t0\t0\t0\t0\t-0.0\t-0.0\t0.3\t1", "2\t0\t3\t16\t0\t0\t0\t0\t0.0002\t0\t0.3\t1",
+          "3\t0\t3\t16\t0\t0\t0\t0\t0.0002\t-0.0003\t0.3\t1"]
+  p.write_text("QGC WPL 110\n0\t0\t0\t16\t0\t0\t0\t0\t0\t0\t-0.13\t1\n" + "\n".join(rows) + "\n")
+  with pytest.warns(mf.MissionFileWarning, match="zero coordinates are positions"):
+    m = _np(load_mission(p, "rover"))
+  assert m.n_waypoints == 3
+  np.testing.assert_allclose(m.waypoints[:3, :2], [[0, 0], [0, 22.26], [-33.40, 22.26]], atol=0.01)
 
 
 def _plan(items, home=(49.2606, -123.246, 80.0)):
@@ -139,13 +158,17 @@ def _item(cmd, params, frame=3):
 @pytest.mark.parametrize("text, pattern", [
   ("{not json", r"p.plan: line 1: not valid JSON"),
   (json.dumps({"fileType": "Mission"}), r"p.plan: not a QGroundControl plan"),
-  (_plan([{"type": "ComplexItem", "complexItemType": "survey"}]), r"p.plan: item 1: ComplexItem \(survey\) not supp"),
+  (_plan([{"type": "ComplexItem", "complexItemType": "CorridorScan"}]),
+   r"p.plan: item 1: ComplexItem of type 'CorridorScan' is not supported \(only 'survey'"),
+  (_plan([{"type": "ComplexItem", "complexItemType": "StructureScan"}]),
+   r"p.plan: item 1: ComplexItem of type 'StructureScan' is not supported"),
+  (_plan([{"type": "ComplexItem", "complexItemType": "survey"}]), r"p.plan: item 1: survey 'polygon' must be"),
   (_plan([_item(16, [0, 0, 0, None, 49.2612, -123.246])]), r"p.plan: item 1: 'params' must be a list of 7"),
   (_plan([_item(16, [0, 0, 0, None, "x", -123.246, 15])]), r"p.plan: item 1: param 5 is not a number"),
   (_plan([_item(16, [0, 0, 0, None, 49.2612, -123.246, 15]), _item(31000, [0] * 7)]),
    r"p.plan: item 2: unsupported command 31000"),
   (_plan([]), r"p.plan: empty mission"),
-  (_plan([_item(16, [0, 0, 0, None, 49.2612, -123.246, 15])], home=(0, 0, 0)), r"p.plan: plannedHomePosition"),
+  (_plan([_item(178, [1, 5, -1, 0, 0, 0, 0])], home=(0, 0, 0)), r"p.plan: home position has lat = lon = 0 and no item"),
 ])
 def test_broken_plan(tmp_path, text, pattern):
   p = tmp_path / "p.plan"

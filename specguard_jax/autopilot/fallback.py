@@ -12,7 +12,10 @@ setpoint v [2] (m/s) becomes
                 navigator itself flies slower, in turns and braking, its speed is kept);
   hold          s = 0 once r >= m: the vehicle holds (hovers / stops) where it believes it is, until the
                 uncertainty falls back (a trusted sensor returns) or the alarm clears: past the margin the
-                estimate is no longer good enough to fly the mission on;
+                estimate is no longer good enough to fly the mission on. When the mission has rally points (a QGC
+                plan's rallyPoints, envs.worlds.World.rally_points) it holds there instead: it heads for the one
+                nearest its estimated position at v_min + dv, slowing to k_push * (distance) m/s on arrival, where
+                it stops (the autopilots' own hold / RTL-to-rally behaviour, on the estimate it has);
   clearance     the clearance to obstacles widens from m to m + r: closer than that (estimated distance d), the
                 setpoint's component towards the nearest obstacle is removed and a push away from it of
                 k_push * (m + r - d) m/s (at most push_max) is added.
@@ -74,15 +77,30 @@ def speed_scale(cfg: FallbackConfig, sigma) -> jnp.ndarray:
   return jnp.clip(1.0 - cfg.k_sigma * sigma / cfg.margin, 0.0, 1.0)
 
 
-def apply(cfg: FallbackConfig, vel_sp, sigma, obstacle_distance, obstacle_grad, alarm) -> jnp.ndarray:
+def rally_velocity(cfg: FallbackConfig, pos, rally_points) -> jnp.ndarray:
+  """[2] m/s: towards the rally point [R, 3] nearest the (estimated) position pos [3], at min_speed + speed_margin,
+  slowing to k_push * distance near it (R >= 1)."""
+  d = rally_points[:, :2] - pos[None, :2]
+  dist = jnp.linalg.norm(d, axis=-1)
+  i = jnp.argmin(dist)
+  speed = jnp.minimum(cfg.min_speed + cfg.speed_margin, cfg.k_push * dist[i])
+  return d[i] / jnp.maximum(dist[i], 1e-6) * speed
+
+
+def apply(cfg: FallbackConfig, vel_sp, sigma, obstacle_distance, obstacle_grad, alarm, pos=None,
+          rally_points=None) -> jnp.ndarray:
   """The fallback's velocity setpoint [3] (m/s) from the navigator's vel_sp [3], the position uncertainty sigma []
   (m), the estimated obstacle distance [] (m) and its SDF gradient [3] (unit vector away from the nearest obstacle,
-  zero when there is none) at the estimated position, and alarm [] bool. vel_sp itself when the alarm is down."""
+  zero when there is none) at the estimated position, and alarm [] bool. vel_sp itself when the alarm is down.
+  pos [3], rally_points [R, 3]: the estimated position and the mission's rally points; with R >= 1 the hold heads
+  for the nearest one (module docstring), else (None or R = 0) it stops."""
   r = cfg.k_sigma * sigma
   s = speed_scale(cfg, sigma)
   u = jnp.linalg.norm(vel_sp[:2])
   u_new = jnp.where(s > 0.0, jnp.minimum(u, jnp.maximum(s * u, cfg.min_speed + cfg.speed_margin)), 0.0)
   v = vel_sp[:2] * (u_new / jnp.maximum(u, 1e-6))
+  if rally_points is not None and rally_points.shape[0] > 0:   # static: only a plan with rally points
+    v = jnp.where(s > 0.0, v, rally_velocity(cfg, pos, rally_points))
   g = obstacle_grad[:2]
   n = g / jnp.maximum(jnp.linalg.norm(g), 1e-6)         # horizontal unit vector away from the obstacle (0 if none)
   short = jnp.maximum(cfg.margin + r - obstacle_distance, 0.0)

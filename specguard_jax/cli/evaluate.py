@@ -3,6 +3,7 @@
   python evaluate.py --run runs/default --out runs/default/eval              # main experiments, default controllers
   python evaluate.py --run runs/default --suite paper --out runs/paper_eval  # every experiment our code can run
   python evaluate.py --run DIR --controllers no_protection,specguard_rc --sensors gps,gyro --profiles overt
+  python evaluate.py --vehicle rover --mission my.plan --params rover.parm --controllers no_protection,fallback
   specguard-evaluate ...                                                     # the same, as installed by pip
 
 Every controller (specguard_jax.controllers: no_protection, specguard_rc/pc, delorean, ablations, the prior-work
@@ -38,6 +39,7 @@ import os
 import subprocess
 import sys
 import time
+import warnings
 
 from specguard_jax.types import RECON_MODES, VEHICLES
 
@@ -83,6 +85,12 @@ def _parser() -> argparse.ArgumentParser:
                       "(delorean, specguard_*; EnvConfig.recon_mode): fused (default) or paper")
   p.add_argument("--max-s", type=float, default=400.0, help="episode cap (s)")
   p.add_argument("--mission-s", help="LO,HI mission duration bounds (s) instead of the vehicle preset (small runs)")
+  p.add_argument("--mission", metavar="FILE",
+                 help="fly this QGroundControl mission (.plan or QGC WPL 110) in every setting instead of generated "
+                      "missions, with its geoFence and rally points (EnvConfig.mission_file)")
+  p.add_argument("--params", metavar="FILE",
+                 help="autopilot parameter file (PX4 .params or ArduPilot .parm): spec parameters, mission speed and "
+                      "acceptance radius, home-centred fence (EnvConfig.params_file)")
   p.add_argument("--traj", type=int, default=2, help="missions per setting whose trajectories are recorded")
   p.add_argument("--train-budget", choices=("ci", "full"), help="baseline training size (default: GPU full, CPU ci)")
   p.add_argument("--no-figures", action="store_true")
@@ -353,6 +361,7 @@ def check_up_front(args, p: dict) -> None:
     raise ValueError(f"--seed {args.seed} is not allowed; allowed: 0 to {2**32 - 1}")
   if args.traj < 0:
     raise ValueError(f"--traj must be >= 0, got {args.traj}")
+  check_user_files(args, {g["vehicle"] for g in p["groups"].values()})
   for flag in ("controllers", "worlds", "sensors"):
     if getattr(args, flag) is not None and not _csv(getattr(args, flag)):
       raise ValueError(f"--{flag} {getattr(args, flag)!r} names none; leave the flag out for the default")
@@ -368,6 +377,25 @@ def check_up_front(args, p: dict) -> None:
       C.check(name, ctx)
     except C.NotAvailable as e:
       raise ValueError(f"--controllers {name} cannot run: {e}") from None
+
+
+def check_user_files(args, vehicles) -> None:
+  """--mission and --params load for every vehicle evaluated (one-line ValueError naming the file and the problem;
+  their notices, e.g. a home taken from the first waypoint, are shown once here)."""
+  import warnings
+
+  from envs import mission_files
+  from specguard_jax.specs import vehicle_params
+  for flag, path in (("--mission", args.mission), ("--params", args.params)):
+    if path is not None and not os.path.isfile(path):
+      raise ValueError(f"{flag}: file not found: {path}")
+  with warnings.catch_warnings():
+    warnings.showwarning = lambda message, *_, **__: print(f"evaluate.py: note: {message}", file=sys.stderr)
+    for vehicle in sorted(vehicles):
+      if args.params:
+        vehicle_params.load_vehicle_settings(args.params, vehicle)
+      if args.mission:
+        mission_files.load_plan(args.mission, vehicle, max_episode_s=args.max_s)
 
 
 def requested_not_run(args, not_run: dict) -> str | None:
@@ -410,7 +438,8 @@ def main(argv=None) -> int:
   records, trajs = {}, {}
   jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
   for gname, g in p["groups"].items():
-    base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s)}
+    base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s), "mission_file": args.mission or "",
+            "params_file": args.params or ""}
     if args.recon:
       base["recon_mode"] = args.recon
     if p["mission_s"]:
@@ -445,7 +474,10 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
-      jobs.append((gname, ctrl, E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})))
+      with warnings.catch_warnings():   # the files' notices were shown by check_user_files
+        warnings.simplefilter("ignore")
+        env = E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})
+      jobs.append((gname, ctrl, env))
   refused = requested_not_run(args, results["not_run"])
   if refused:
     bar.close()
@@ -481,6 +513,7 @@ def main(argv=None) -> int:
           "date": datetime.datetime.now().isoformat(timespec="seconds"), "backend": backend,
           "device": str(jax.devices()[0]), "git_commit": _git_commit(), "seed": args.seed,
           "missions_per_setting": missions, "max_s": args.max_s, "mission_s": p["mission_s"], "run": args.run,
+          "mission_file": args.mission, "params_file": args.params,
           "runs": p["runs"], "suite": args.suite, "profiles": list(p["profiles"]),
           "campaigns": list(p["campaigns"]), "hazard_lead_s": list(p["hazard_lead_s"]),
           "designed_rates": {x: r for g in p["groups"].values() for st in g["settings"]

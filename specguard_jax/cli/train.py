@@ -7,6 +7,7 @@
   python train.py --config my.json                 # TrainConfig fields as JSON (flags override it)
   python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
   python train.py --set env.clearance=6 sg.lr=1e-4  # any config field, nested ones dotted (values as JSON)
+  python train.py --vehicle rover --params rover.parm   # the vehicle's own autopilot parameters set the specs
   python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
   python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
 
@@ -97,6 +98,13 @@ def _parser() -> _Parser:
   ap.add_argument("--resume", metavar="DIR", help="resume the run in DIR from its newest checkpoint")
   _config_flag(ap, "--world", key="env.worlds", type=_csv, metavar="WORLDS",
                help="comma-separated world presets to train in")
+  _config_flag(ap, "--params", key="env.params_file", metavar="FILE",
+               help="autopilot parameter file (PX4 .params or ArduPilot .parm): the spec table's parameters, the "
+                    "missions' speed and acceptance radius, the home-centred fence "
+                    "(specguard_jax.specs.vehicle_params)")
+  _config_flag(ap, "--mission", key="env.mission_file", metavar="FILE",
+               help="QGroundControl mission (.plan or QGC WPL 110) every episode flies, with its geofence and rally "
+                    "points (default: generated missions)")
   _config_flag(ap, "--reward", key="env.reward", choices=REWARDS,
                help="survival: 1 per step in flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
   _config_flag(ap, "--action", key="action", choices=("gaussian", "discrete"),
@@ -197,6 +205,22 @@ def build_config(a):
   return cfg.validate()
 
 
+def check_user_files(cfg) -> None:
+  """The run's parameter and mission files (env.params_file, env.mission_file) load for its vehicle: a bad one is a
+  one-line ValueError before anything is built. Their notices are left to the env, which loads them again."""
+  import warnings
+
+  from envs import mission_files
+  from specguard_jax.specs import vehicle_params
+  with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    if cfg.env.params_file:
+      vehicle_params.load_vehicle_settings(cfg.env.params_file, cfg.vehicle)
+    if cfg.env.mission_file:
+      mission_files.load_plan(cfg.env.mission_file, cfg.vehicle, max_episode_s=cfg.env.max_episode_s,
+                              max_waypoints=cfg.env.mission_max_waypoints)
+
+
 def _sweep_members(cfg, items):
   import itertools
 
@@ -294,6 +318,7 @@ def main(argv=None):
       out = a.resume
     else:
       cfg = build_config(a)
+      check_user_files(cfg)
       out = a.out or os.path.join("runs", f"{cfg.vehicle}_{cfg.variant}_s{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
     if a.sweep:
       members = _sweep_members(cfg, a.sweep)

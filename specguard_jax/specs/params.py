@@ -50,8 +50,10 @@ DRONE_PARAMS = _defs(
     ("MPC_LAND_SPEED", 0.5, "m/s", "max descent speed while landing (S9)"),
     ("MPC_TKO_SPEED", 2.0, "m/s", "min climb rate during take-off (S10, as Table 4's STL states)"),
     ("NAV_MC_ALT_RADIUS", 8.0, "m", "max horizontal distance from the loiter centre (S11)"),
-    ("GF_MAX_HOR_DIST", 50.0, "m", "geofence horizontal extent (fence geometry, consumed by the env)"),
-    ("GF_MAX_VER_DIST", 10.0, "m", "geofence vertical extent (fence geometry, consumed by the env)"),
+    ("GF_MAX_HOR_DIST", 50.0, "m", "geofence radius about home: a parameter file that sets it (> 0) adds that fence "
+                                    "(specs.vehicle_params); the table's value alone adds none"),
+    ("GF_MAX_VER_DIST", 10.0, "m", "geofence height above home: a parameter file that sets it (> 0) adds that "
+                                    "ceiling (specs.vehicle_params); the table's value alone adds none"),
     ("SG_GF_MARGIN", 1.0, "m", "min margin to the geofence (S12)"),
     ("SG_TURN_DIST", 10.0, "m", "S7 min-speed exemption radius around the target waypoint (turns, braking)"),
     ("SG_ACCEL_TIME", 3.0, "s", "S7/S10 grace: the speed bound must be met within this time of any phase instant"),
@@ -69,6 +71,20 @@ ROVER_PARAMS = _defs(
     ("SG_ACCEL_TIME", 3.0, "s", "S7 grace: the min speed must be met within this time of any cruise instant"),
 )
 
+AUTOPILOT_PARAMS = _defs(
+    # The autopilots' own names a parameter file may carry beside the paper's (specs.vehicle_params maps them).
+    ("WP_RADIUS", 2.0, "m", "ArduPilot Rover waypoint radius: the rover's WPNAV_RADIUS (S5) and mission acceptance "
+                            "radius", 0.01, 1000.0),
+    ("CRUISE_SPEED", 2.0, "m/s", "ArduPilot Rover cruise speed: the rover's mission speed; CRUISE_SPEED_MIN (S7) "
+                                 "becomes half of it", 0.0, 100.0),
+    ("MPC_XY_CRUISE", 5.0, "m/s", "PX4 multicopter cruise speed: the drone's mission speed", 0.0, 100.0),
+    ("FENCE_ENABLE", 0.0, "", "ArduPilot fence switch: 0 leaves FENCE_RADIUS / FENCE_ALT_MAX unused", 0.0, 1.0),
+    ("FENCE_TYPE", 7.0, "", "ArduPilot fence types bitmask: 1 maximum altitude, 2 circle about home, 4 polygons",
+     0.0, 15.0),
+    ("FENCE_RADIUS", 300.0, "m", "ArduPilot fence: circle radius about home", 0.0, 10_000.0),
+    ("FENCE_ALT_MAX", 100.0, "m", "ArduPilot fence: maximum altitude above home", 0.0, 10_000.0),
+)
+
 CONSTRAINTS = (
     # (lower, upper): a table (or a file) that sets both must have lower < upper, else no trace satisfies both specs.
     ("MPC_XY_VEL_MIN", "MPC_XY_VEL_MAX"),
@@ -78,8 +94,9 @@ CONSTRAINTS = (
 
 
 def param_def(name: str) -> Optional[ParamDef]:
-  """The ParamDef of a drone or rover spec parameter (the names both tables share have the same range), else None."""
-  return DRONE_PARAMS.get(name) or ROVER_PARAMS.get(name)
+  """The ParamDef of a drone or rover spec parameter (the names both tables share have the same range) or of an
+  autopilot name a parameter file may carry (AUTOPILOT_PARAMS), else None."""
+  return DRONE_PARAMS.get(name) or ROVER_PARAMS.get(name) or AUTOPILOT_PARAMS.get(name)
 
 
 def check_consistent(values: Mapping[str, float], where: str = "", lines: Optional[Mapping[str, int]] = None) -> None:
@@ -158,7 +175,7 @@ def load_params_file(path: str, known: Optional[Iterable[str]] = None) -> Dict[s
 def loads_params(text: Union[str, bytes], fmt: str = "params", known: Optional[Iterable[str]] = None,
                  name: str = "<string>") -> Dict[str, float]:
   """Parse parameter-file contents; returns {NAME: value in SI units} for the names in `known` (default: every drone
-  and rover spec parameter).
+  and rover spec parameter and the autopilot names of AUTOPILOT_PARAMS).
 
   fmt "params" (PX4; ArduPilot lines are accepted too) or "parm" (ArduPilot only). Bytes are decoded by `decode_text`
   (UTF-8 with or without a BOM, else Latin-1). '#' starts a comment. Every other non-blank line must be a parameter
@@ -169,7 +186,7 @@ def loads_params(text: Union[str, bytes], fmt: str = "params", known: Optional[I
   """
   if fmt not in ("params", "parm"):
     raise SpecError(f"parameter file format must be 'params' or 'parm', got {fmt!r}")
-  known = set(DRONE_PARAMS) | set(ROVER_PARAMS) if known is None else set(known)
+  known = set(DRONE_PARAMS) | set(ROVER_PARAMS) | set(AUTOPILOT_PARAMS) if known is None else set(known)
   text = decode_text(text) if isinstance(text, bytes) else text.removeprefix("\ufeff")
   out: Dict[str, float] = {}
   seen: Dict[tuple, tuple] = {}   # key -> (line, raw value) of its first setting

@@ -23,8 +23,9 @@ Choices (for docs/DESIGN.md):
   * S9 is keep-below (descent_speed <= MPC_LAND_SPEED) and S11 keep-below (stay within the loiter radius), as their
     STL states; the paper's printed reward equations for S9/S11 are keep-above (see rewards).
   * S10 follows Table 4's STL (climb rate >= MPC_TKO_SPEED during take-off); the printed reward is keep-below.
-  * S12: violated when fence_margin < 1 m (SG_GF_MARGIN / FENCE_MARGIN). GF_MAX_HOR_DIST / GF_MAX_VER_DIST describe
-    the fence geometry the env builds; the drone reward is the two-factor (fence_h, fence_v) form.
+  * S12: violated when fence_margin < 1 m (SG_GF_MARGIN / FENCE_MARGIN). GF_MAX_HOR_DIST / GF_MAX_VER_DIST set by a
+    parameter file add the home-centred fence they describe (specs.vehicle_params, EnvConfig.params_file); the
+    drone reward is the two-factor (fence_h, fence_v) form.
   * Intervals are written in seconds and converted to steps with the dt given to the evaluator.
 """
 
