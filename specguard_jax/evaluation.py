@@ -341,10 +341,10 @@ def precompile(jobs, *, workers: int = 0) -> dict:
   """Compile several rollouts at once, ahead of flying them, and cache them for `rollout`.
 
   jobs: list of dicts with the arguments of `rollout` (env, policy, policy_params, settings, missions, and optional
-  max_s, n_traj, attacker, attacker_params); configurations already compiled are skipped. XLA compilation releases the GIL, so `workers`
-  threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core GPU host the eight
-  env configs of `evaluate.py --suite paper` compile together instead of one after another. Returns {job index:
-  compile seconds of that job} and 'wall' (seconds for all of them)."""
+  max_s, n_traj, attacker, attacker_params); configurations already compiled are skipped. XLA compilation releases
+  the GIL, so `workers` threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core
+  GPU host the eight env configs of `evaluate.py --suite paper` compile together instead of one after another.
+  Returns {job index: compile seconds of that job} and 'wall' (seconds for all of them)."""
   import concurrent.futures
   import os
   todo = []
@@ -383,9 +383,10 @@ def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 
   """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
   argument). attacker (hashable, static; with its attacker_params): the attack agent of the red-team settings
   (Setting.redteam), e.g. specguard_jax.ppo.redteam.RedteamAgent: init(b) -> its per-row state [b, ...];
-  act(params, state, agent state, action [b, 3]) -> (AttackSchedule [b] of this step, next agent state). Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories
-  or None: {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K],
-  'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
+  act(params, state, agent state, action [b, 3]) -> (AttackSchedule [b] of this step, next agent state).
+  Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories or None:
+  {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K], 'waypoints' [K, W, 3],
+  'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
   timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the
   same static configuration (clear_cache() frees them); False: compile for this call only (an executable `precompile`
   made for it is used and dropped)."""

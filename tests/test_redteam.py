@@ -59,7 +59,7 @@ def _always_gyro(params):
   """params whose agent attacks the gyro from the first step on (output biases: gyro score and launch high)."""
   params = jax.tree.map(lambda x: x, params)
   net = params["policy"]["net"]
-  last = sorted(net)[-1]
+  last = max(net)   # the output layer (dense_<last>)
   net[last] = dict(net[last], kernel=jnp.zeros_like(net[last]["kernel"]),
                    bias=jnp.zeros(attacker_lib.N_ACT).at[SENSOR_NAMES.index("gyro")].set(5.0).at[9].set(5.0)
                    .at[6].set(1.0))

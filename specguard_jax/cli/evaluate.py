@@ -540,8 +540,8 @@ def main(argv=None) -> int:
       red = None
       if p["redteam"] and any(st.redteam for st in g["settings"]):
         try:
-          red = redteam_agent(p, ctrl, env, log=lambda i, n, row, lab=label: bar.show(
-              f"{gname}: red-team agent vs {lab} {i}/{n}"))
+          red = redteam_agent(p, ctrl, env, log=lambda i, n, row, lab=f"{gname}: red-team agent vs {label}": bar.show(
+              f"{lab} {i}/{n}"))
         except C.NotAvailable as e:
           results["not_run"][f"{gname}/{label}"] = str(e)
           bar.step(f"{gname}: {label} not run")
