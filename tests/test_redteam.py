@@ -112,3 +112,11 @@ def test_missing_agent_is_refused_up_front(tmp_path, capsys):
   assert evaluate_cli.main(CLI_ARGS + ["--campaigns", "redteam", "--out", str(tmp_path)]) == 2
   err = capsys.readouterr().err
   assert "no red-team agent" in err and "--train-redteam" in err
+
+
+@pytest.mark.parametrize("argv, needle", [(["--train-redteam", "--redteam-steps", "0"], "--redteam-steps 0"),
+                                          (["--campaigns", "redteam", "--redteam-seed", "-1"], "--redteam-seed -1")])
+def test_bad_redteam_budget_is_one_line_exit_2(argv, needle, tmp_path, capsys):
+  assert evaluate_cli.main(CLI_ARGS + argv + ["--out", str(tmp_path)]) == 2
+  err = capsys.readouterr().err
+  assert needle in err and err.count("\n") == 1
