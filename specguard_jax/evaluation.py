@@ -22,6 +22,10 @@ j draw where the sensors agree, since only the timing options differ):
   designed  stealthy ramps at the rate designed against the calibrated detector (calibration.stealthy.design_rates:
             the fastest ramp it does not flag for a hidden time), onset as above, lasting until the episode ends;
   multi     two sensors at once: MULTI_PAIRS.
+  redteam   (`redteam_setting`, not in CAMPAIGNS: it needs an agent per controller) a trained attack agent
+            (specguard_jax.ppo.redteam, the best response to the controller flown) picks the sensor, the bias, the
+            onset and the duration each step; `rollout(..., attacker=, attacker_params=)` flies it. Its attacks
+            differ between controllers, so no protection's records in this setting are no twin.
 
 `rollout` returns per-mission records (numpy, leading axis = missions, settings concatenated in order):
   setting [n] int, mission [n] int (index j), world [n] int
@@ -41,6 +45,9 @@ j draw where the sensors agree, since only the timing options differ):
                          compliant)
   override_s [n] s       time the recovery policy's override was active
   min_obstacle [n] m     closest approach to an obstacle
+  redteam_sensor [n] int  (only with an attacker) the red-team agent's target (index into SENSOR_NAMES; -1 when
+                         it never attacked or the setting is not the red-team one); its onset and end are in onset
+                         and attack_end
   hazard_kind [n] int    hazard-timed settings: the hazard point (index into envs.hazards.HAZARD_KINDS; -1 none or
                          not hazard-timed);  hazard_t [n] s its nominal time (BIG when not hazard-timed)
 Instantaneous compliance of a spec at a step = its binary per-step reward (specguard_jax.rewards: the body of an
@@ -73,6 +80,7 @@ TRAJ_FIELDS = ("x", "y", "z", "est_x", "est_y", "est_z", "yaw", "est_yaw", "alti
 
 
 CAMPAIGNS = ("long", "hazard", "designed", "multi")
+REDTEAM = "redteam"   # the red-team campaign (redteam_setting): flown with a trained attack agent per controller
 MULTI_PAIRS = (("gps", "flow"), ("gps", "mag"), ("gps", "baro"), ("gps", "gyro"))
 HAZARD_LEAD_S = (2.0, 5.0)   # s before the hazard point: the EKF and the autopilot need a few seconds to go astray
 _HAZARD_SALT = 0x48415A   # folds mission j's attack key into its hazard-point key (shared by its hazard settings)
@@ -81,14 +89,16 @@ _HAZARD_SALT = 0x48415A   # folds mission j's attack key into its hazard-point k
 @dataclasses.dataclass(frozen=True)
 class Setting:
   """A named attack distribution: attack None = attack-free. hazard_lead_s: (lo, hi) s, the lead time before the
-  hazard point when attack.onset == 'given' (hazard-timed)."""
+  hazard point when attack.onset == 'given' (hazard-timed). redteam: the attack is chosen step by step by the
+  rollout's attack agent (attack is then None)."""
   name: str
   attack: attacks_lib.AttackConfig | None = None
   hazard_lead_s: tuple = HAZARD_LEAD_S
+  redteam: bool = False
 
   @property
   def attacked(self) -> bool:
-    return self.attack is not None
+    return self.attack is not None or self.redteam
 
 
 def setting(sensors=None, profile: str = "overt") -> Setting:
@@ -124,6 +134,12 @@ def campaign_setting(campaign: str, sensors, profile: str = "overt", designed_ra
     raise ValueError(f"the multi campaign attacks two or more sensors at once, got {sensors}")
   acfg = attacks_lib.AttackConfig(sensors=sensors, profiles=(profile,), n_sensors=len(sensors), **kw)
   return Setting(f"{campaign}/{'+'.join(sensors)}/{profile}", acfg, tuple(hazard_lead_s))
+
+
+def redteam_setting(sensors=attacks_lib.SENSOR_NAMES) -> Setting:
+  """The red-team campaign's setting 'redteam/<sensors>/agent' (module docstring): the attack agent may target any
+  of `sensors` (its training's AttackerConfig.sensors; '+'-joined in the name)."""
+  return Setting(f"{REDTEAM}/{'+'.join(sensors)}/agent", None, redteam=True)
 
 
 def campaign_settings(campaigns=CAMPAIGNS, sensors=attacks_lib.SENSOR_NAMES, profiles=("overt",),
@@ -188,8 +204,9 @@ def _setting_salt(s: Setting) -> int:
   return zlib.crc32(s.name.encode()) & 0x7FFFFFFF
 
 
-@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy", "n_traj"))
-def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, n_traj: int = 0):
+@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy", "n_traj", "attacker"))
+def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, n_traj: int = 0, attacker=None,
+             attacker_params=None):
   n_set = len(settings)
   mission_idx = jnp.tile(jnp.arange(n), n_set)
   setting_id = jnp.repeat(jnp.arange(n_set), n)
@@ -217,6 +234,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
 
   state, wid, hazard_kind, hazard_t = jax.vmap(reset_one)(mission_idx, setting_id)
   step = jax.vmap(env.step)
+  red = jnp.asarray([s.redteam for s in settings])[setting_id]   # [b] rows the attack agent drives
   has_det = "alarm" in state.info
   weights = env.reward_fn.weights() > 0
   per_spec = jax.vmap(lambda sig: env.reward_fn.per_spec(sig, binary=True))
@@ -228,6 +246,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
           "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32)}
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
+  if attacker is not None:
+    rec0["adv"] = attacker.init(b)
   if len(traj_idx):
     rec0["traj"] = jnp.zeros((max_steps + 1, len(traj_idx), len(TRAJ_FIELDS)), jnp.float32)
 
@@ -251,15 +271,24 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   def body(c):
     s, t, rec = c
     live = s.done == 0
-    nxt = step(s, policy(policy_params, s.obs))
-    now = nxt.info["time"]
     rec = dict(rec)
+    action = policy(policy_params, s.obs)
+    onset_now, end_now = onset, attack_end
+    if attacker is not None:   # the red-team rows' attack of this step, from the agent (the other rows keep theirs)
+      sched, adv = attacker.act(attacker_params, s, rec["adv"], action)
+      s = s.replace(info=dict(s.info, attack=tree_where(red, sched, s.info["attack"])))
+      rec["adv"] = tree_where(red & live, adv, rec["adv"])
+      a = rec["adv"]
+      onset_now = jnp.where(red, a["onset"], onset)
+      end_now = jnp.where(red, jnp.where(a["ended"], a["onset"] + a["used"], BIG), attack_end)
+    nxt = step(s, action)
+    now = nxt.info["time"]
     if has_det:
       alarm = (nxt.info["alarm"] > 0) & live
       rec["first_alarm"] = jnp.where(alarm & (rec["first_alarm"] >= BIG), now, rec["first_alarm"])
-      rec["det_t"] = jnp.where(alarm & (now >= onset) & (rec["det_t"] >= BIG), now, rec["det_t"])
+      rec["det_t"] = jnp.where(alarm & (now >= onset_now) & (rec["det_t"] >= BIG), now, rec["det_t"])
     ok = jnp.all((per_spec(nxt.info["signals"]) > 0.5) | ~weights, axis=-1)
-    window = live & (rec["det_t"] < BIG) & (now >= rec["det_t"]) & (now <= attack_end + 1e-6)
+    window = live & (rec["det_t"] < BIG) & (now >= rec["det_t"]) & (now <= end_now + 1e-6)
     rec["bad_t"] = jnp.where(window & ~ok & (rec["bad_t"] >= BIG), now, rec["bad_t"])
     # the current run of compliant steps: its first step and its length (steps)
     rec["ok_since"] = jnp.where(live, jnp.where(ok, jnp.minimum(rec["ok_since"], now), BIG), rec["ok_since"])
@@ -274,6 +303,12 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
 
   state, t, rec = jax.lax.while_loop(cond, body, (state, jnp.zeros((), jnp.int32), rec0))
   ep = state.info["episode"]
+  extra = {}
+  if attacker is not None:   # the red-team rows' window: onset .. onset + time attacked (BIG when never attacked)
+    a = rec["adv"]
+    onset = jnp.where(red, a["onset"], onset)
+    attack_end = jnp.where(red, jnp.where(a["started"], a["onset"] + a["used"], BIG), attack_end)
+    extra["redteam_sensor"] = jnp.where(red & a["started"], a["target"], -1).astype(jnp.int32)
   mission, truth = state.info["mission"], state.info["sim"]["truth"]
   last_wp = jax.vmap(missions_lib.final_waypoint)(mission)
   d = last_wp - truth.pos
@@ -289,40 +324,42 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "bad_t": rec["bad_t"],
          "rec_t": rec["rec_t"], "ok_since": rec["ok_since"], "override_s": rec["override_s"],
          "waypoints": mission.waypoints, "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind,
-         "hazard_t": hazard_t}
+         "hazard_t": hazard_t, **extra}
   return out, rec.get("traj"), t
 
 
-def _static(env, policy, policy_params, settings, missions, max_s, n_traj):
+def _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker=None, attacker_params=None):
   """The static jit arguments of `_rollout` and the compile-cache key of that configuration."""
+  if any(s.redteam for s in settings) and attacker is None:
+    raise ValueError("a red-team setting needs an attack agent (rollout's attacker and attacker_params)")
   static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
-                n_traj=int(n_traj))
-  return static, tuple(static.items()) + (jax.tree.structure(policy_params),)
+                n_traj=int(n_traj), attacker=attacker)
+  return static, tuple(static.items()) + (jax.tree.structure(policy_params), jax.tree.structure(attacker_params))
 
 
 def precompile(jobs, *, workers: int = 0) -> dict:
   """Compile several rollouts at once, ahead of flying them, and cache them for `rollout`.
 
   jobs: list of dicts with the arguments of `rollout` (env, policy, policy_params, settings, missions, and optional
-  max_s, n_traj); configurations already compiled are skipped. XLA compilation releases the GIL, so `workers`
-  threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core GPU host the eight
-  env configs of `evaluate.py --suite paper` compile together instead of one after another. Returns {job index:
-  compile seconds of that job} and 'wall' (seconds for all of them)."""
+  max_s, n_traj, attacker, attacker_params); configurations already compiled are skipped. XLA compilation releases
+  the GIL, so `workers` threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core
+  GPU host the eight env configs of `evaluate.py --suite paper` compile together instead of one after another.
+  Returns {job index: compile seconds of that job} and 'wall' (seconds for all of them)."""
   import concurrent.futures
   import os
   todo = []
   for i, j in enumerate(jobs):
     static, ck = _static(j["env"], j["policy"], j["policy_params"], _as_settings(j["settings"]), j["missions"],
-                         j.get("max_s", 400.0), j.get("n_traj", 0))
+                         j.get("max_s", 400.0), j.get("n_traj", 0), j.get("attacker"), j.get("attacker_params"))
     if ck not in _COMPILED and all(ck != c for _, c, _, _ in todo):
-      todo.append((i, ck, static, j["policy_params"]))
+      todo.append((i, ck, static, (j["policy_params"], j.get("attacker_params"))))
   workers = workers or max(1, min(len(todo), (os.cpu_count() or 2) // 2))
   key = jax.random.PRNGKey(0)
 
   def one(item):
-    i, ck, static, params = item
+    i, ck, static, (params, a_params) = item
     t0 = time.perf_counter()
-    fn = _rollout.lower(policy_params=params, key=key, **static).compile()
+    fn = _rollout.lower(policy_params=params, attacker_params=a_params, key=key, **static).compile()
     return i, ck, fn, time.perf_counter() - t0
 
   out = {}
@@ -342,25 +379,28 @@ def precompile(jobs, *, workers: int = 0) -> dict:
 
 
 def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 10_000, max_s: float = 400.0,
-            n_traj: int = 0, timing: dict | None = None, cache: bool = True):
+            n_traj: int = 0, timing: dict | None = None, cache: bool = True, attacker=None, attacker_params=None):
   """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
-  argument). Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories
-  or None: {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K],
-  'waypoints' [K, W, 3], 'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
+  argument). attacker (hashable, static; with its attacker_params): the attack agent of the red-team settings
+  (Setting.redteam), e.g. specguard_jax.ppo.redteam.RedteamAgent: init(b) -> its per-row state [b, ...];
+  act(params, state, agent state, action [b, 3]) -> (AttackSchedule [b] of this step, next agent state).
+  Returns (records dict of numpy arrays [n_settings * missions, ...] (module docstring), trajectories or None:
+  {'rows' [T, K, 12] (TRAJ_FIELDS), 'index' [K] record rows, 'setting' [K], 'mission' [K], 'waypoints' [K, W, 3],
+  'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
   timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the
   same static configuration (clear_cache() frees them); False: compile for this call only (an executable `precompile`
   made for it is used and dropped)."""
   settings = _as_settings(settings)
-  static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj)
+  static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker, attacker_params)
   key = jax.random.PRNGKey(seed)
   t0 = time.perf_counter()
   fn = _COMPILED.get(ck) if cache else _COMPILED.pop(ck, None)   # cache=False: a precompiled one serves once
   if fn is None:   # ahead-of-time compile so compile and flight times are reported apart
-    fn = _rollout.lower(policy_params=policy_params, key=key, **static).compile()
+    fn = _rollout.lower(policy_params=policy_params, attacker_params=attacker_params, key=key, **static).compile()
     if cache:
       _COMPILED[ck] = fn
   t1 = time.perf_counter()
-  out, traj, t = jax.block_until_ready(fn(policy_params=policy_params, key=key))
+  out, traj, t = jax.block_until_ready(fn(policy_params=policy_params, attacker_params=attacker_params, key=key))
   if timing is not None:
     timing.update(compile_s=t1 - t0, run_s=time.perf_counter() - t1)
   out, traj, t = jax.device_get((out, traj, t))

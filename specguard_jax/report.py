@@ -118,7 +118,53 @@ def build(results: dict, records: dict, meta: dict) -> dict:
                    "compile_sum_s": float(sum(r.get("compile_s", 0.0) for r in results["rollouts"])),
                    "run_s": float(sum(r.get("run_s", 0.0) for r in results["rollouts"]))}
   rep["experiments"] = experiments(rep)
+  rt = redteam_log(results, records)
+  if rt:
+    rep["redteam"] = rt
   return rep
+
+
+def _is_redteam(name: str) -> bool:
+  return _campaign(name) == "redteam"
+
+
+def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
+  """The red-team campaign's log: {controller: {agent (its dir, whether trained in this run, training seconds and
+  per-iteration history), setting, missions: [{mission, world, sensor, onset_s, duration_s, violated, complete,
+  crash, collision}] (sensor None and onset/duration None when the agent never attacked), summary: {missions,
+  attacked, sensors: {name: count}, onset_s / duration_s: {median, min, max} over the attacked missions,
+  any_violation}}}; {} when no red-team setting was flown."""
+  from specguard_jax.types import SENSOR_NAMES
+  g = results["groups"].get(group)
+  if not g:
+    return {}
+  names = [s for s in g["settings"] if _is_redteam(s)]
+  out = {}
+  for (gn, cname), rec in records.items():
+    if gn != group or "redteam_sensor" not in rec or not names:
+      continue
+    i = g["settings"].index(names[0])
+    r = M.select(rec, rec["setting"] == i)
+    sens = np.asarray(r["redteam_sensor"])
+    hit = sens >= 0
+    onset = np.where(hit, r["onset"], np.nan)
+    dur = np.where(hit, r["attack_end"] - r["onset"], np.nan)
+    viol = M.violation(r)
+    rows = [{"mission": int(r["mission"][k]), "world": int(r["world"][k]),
+             "sensor": SENSOR_NAMES[int(sens[k])] if hit[k] else None,
+             "onset_s": float(onset[k]) if hit[k] else None, "duration_s": float(dur[k]) if hit[k] else None,
+             "violated": bool(viol[k]), "complete": bool(r["complete"][k]), "crash": bool(r["crash"][k]),
+             "collision": bool(r["collision"][k])} for k in range(len(sens))]
+
+    def stats(x):
+      x = x[np.isfinite(x)]
+      return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max())} if len(x) else None
+    counts = {n: int(np.sum(sens == j)) for j, n in enumerate(SENSOR_NAMES) if np.any(sens == j)}
+    out[cname] = {"setting": names[0], "agent": (results.get("redteam") or {}).get(cname), "missions": rows,
+                  "summary": {"missions": len(rows), "attacked": float(np.mean(hit)) if len(rows) else 0.0,
+                              "sensors": counts, "onset_s": stats(onset), "duration_s": stats(dur),
+                              "any_violation": float(np.mean(viol)) if len(rows) else 0.0}}
+  return out
 
 
 def paired_tests(records: dict, group: str, settings, critical) -> dict:
@@ -228,7 +274,9 @@ def hard_table(rep, group="main") -> dict:
       m = v.get(k)
       if not m:
         continue
-      svr = m.get("svr_all_rate") if (c == "no_protection" or k == "attack_free") else m.get("svr_rate")
+      # the red-team attacks differ between controllers (each its own agent): no protection is no twin there
+      own = c == "no_protection" or k in ("attack_free", "campaign/redteam")
+      svr = m.get("svr_all_rate") if own else m.get("svr_rate")
       row[c] = {"svr": svr, "critical": m.get("critical_rate"), "rsr": m.get("rsr_rate"), "md": m.get("md_stats"),
                 "missions": m.get("missions"), "settings": m.get("settings", 1)}
     out[k.replace("campaign/", "")] = row
@@ -295,6 +343,7 @@ def markdown(rep) -> str:
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
   L += hard_markdown(ex.get("hard"))
+  L += redteam_markdown(rep.get("redteam"))
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
   if rep["skipped_experiments"]:
@@ -396,7 +445,8 @@ def hard_markdown(table) -> list:
   L = ["## Hard suite: SVR, critical-spec violations, RSR and MD per controller and campaign", "",
        "Campaign rows pool the campaign's settings (evaluation.campaign_settings); % with 95 % intervals (Wilson for "
        "rates, Student t for MD); n = missions. No protection's SVR is the share of its missions with any violation; "
-       "the others' is over the missions no protection violated. Attack-free: SVR = any violation.", "",
+       "the others' is over the missions no protection violated. Attack-free and redteam (each controller against "
+       "its own trained attack agent, so no twin): SVR = any violation.", "",
        "| campaign | controller | n | SVR % | critical % | RSR % | MD % |", "|---|---|---|---|---|---|---|"]
 
   def cell(r):
@@ -410,6 +460,25 @@ def hard_markdown(table) -> list:
       md_s = f"{md['mean']:.1f} [{md['ci'][0]:.1f}, {md['ci'][1]:.1f}]" if md else "n/a"
       L.append(f"| {camp} | {c} | {v['missions']} | {cell(v['svr'])} | {cell(v['critical'])} | {cell(v['rsr'])} | "
                f"{md_s} |")
+  return L + [""]
+
+
+def redteam_markdown(log) -> list:
+  """Lines of the red-team campaign's summary (`redteam_log`); [] when none was flown."""
+  if not log:
+    return []
+  L = ["## Red-team campaign: what each controller's attack agent chose", "",
+       "Each controller against its own best-response attack agent (specguard_jax.ppo.redteam; per-mission sensors, "
+       "onsets and durations in report.json 'redteam', figures/redteam.png).", "",
+       "| controller | agent | missions | attacked % | sensors | onset s (median) | duration s (median) | "
+       "any violation % |", "|---|---|---|---|---|---|---|---|"]
+  for c, v in log.items():
+    s, a = v["summary"], v.get("agent") or {}
+    how = ("trained here" if a.get("trained") else "loaded") + (f" ({a['train_s']:.0f} s)" if a.get("train_s") else "")
+    med = lambda x: f"{x['median']:.1f}" if x else "n/a"  # noqa: E731
+    sens = ", ".join(f"{k} {n}" for k, n in s["sensors"].items()) or "none"
+    L.append(f"| {c} | {how} | {s['missions']} | {100 * s['attacked']:.0f} | {sens} | {med(s['onset_s'])} | "
+             f"{med(s['duration_s'])} | {100 * s['any_violation']:.1f} |")
   return L + [""]
 
 
@@ -625,7 +694,37 @@ def make_figures(out_dir: str, rep: dict, records: dict, trajs: dict) -> list:
       ax.legend(fontsize=7)
     axes[1].set_xlabel("time (s)")
     save(fig, "altitude_yaw.png")
+  if rep.get("redteam"):
+    save(redteam_figure(rep["redteam"], plt), "redteam.png")
   return written
+
+
+def redteam_figure(log: dict, plt):
+  """The red-team agents' choices per controller: target sensors (bars) and each attacked mission's onset vs
+  duration (red: a spec violated or a crash, grey: none)."""
+  from specguard_jax.types import SENSOR_NAMES
+  ctrls = list(log)
+  fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+  w = 0.8 / max(len(ctrls), 1)
+  for j, c in enumerate(ctrls):
+    counts = [log[c]["summary"]["sensors"].get(n, 0) for n in SENSOR_NAMES]
+    axes[0].bar(np.arange(len(SENSOR_NAMES)) + j * w, counts, w, label=c)
+    rows = [m for m in log[c]["missions"] if m["sensor"] is not None]
+    for viol in (False, True):
+      pts = [(m["onset_s"], m["duration_s"]) for m in rows if m["violated"] == viol]
+      if pts:
+        x, y = np.asarray(pts).T
+        axes[1].scatter(x, y, s=14, marker="os^vDP"[j % 6], color="tab:red" if viol else "tab:gray",
+                        alpha=0.7, label=f"{c}, {'violated' if viol else 'no violation'}")
+  axes[0].set_xticks(np.arange(len(SENSOR_NAMES)) + w * (len(ctrls) - 1) / 2, SENSOR_NAMES)
+  axes[0].set_ylabel("missions")
+  axes[0].set_title("Red-team agent: target sensor")
+  axes[0].legend(fontsize=7)
+  axes[1].set_xlabel("onset (s)")
+  axes[1].set_ylabel("duration (s)")
+  axes[1].set_title("Red-team agent: onset and duration per mission")
+  axes[1].legend(fontsize=7)
+  return fig
 
 
 def _valid(x):

@@ -24,6 +24,12 @@ settings, named '<campaign>/<sensors>/<profile>'. The designed campaign's ramp r
 they are designed against the detector (calibration.stealthy.design_rates, a few CPU minutes) and saved to
 <out>/designed_rates.json, which a later run with the same --out reuses.
 
+--campaigns redteam (or --train-redteam) adds the red-team setting 'redteam/<sensors>/agent': each controller is
+attacked by its own best-response attack agent (specguard_jax.ppo.redteam), loaded from <redteam-dir>/<controller>/
+(default <out>/redteam), or trained there first against the frozen controller with --train-redteam (the same budget
+for every controller: --redteam-budget ci (CPU minutes, default) | full (GPU), or --redteam-steps / --redteam-envs).
+report.json's 'redteam' section logs each mission's chosen sensor, onset and duration; figures/redteam.png plots them.
+
 --suite hard flies the campaigns benchmark: attack-free + every campaign (or --campaigns), on all worlds (or
 --worlds), with no protection, DeLorean, the fallback and the baselines that are registered, and SpecGuard when --run
 is given; report.md opens with SVR, critical-spec violations, RSR and MD per controller and campaign.
@@ -75,8 +81,17 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--seed", type=int, default=10_000, help="mission/attack/noise seed (unseen by training)")
   p.add_argument("--suite", choices=("paper", "hard"),
                  help="paper: every experiment of the paper our code can run; hard: the attack-campaign benchmark")
-  p.add_argument("--campaigns", help="comma-separated attack campaigns: long,hazard,designed,multi (default: none; "
-                                     "--suite hard: all)")
+  p.add_argument("--campaigns", help="comma-separated attack campaigns: long,hazard,designed,multi,redteam (default: "
+                                     "none; --suite hard: all but redteam)")
+  p.add_argument("--train-redteam", action="store_true",
+                 help="train the red-team attack agent of every controller that has none in --redteam-dir (adds the "
+                      "redteam campaign)")
+  p.add_argument("--redteam-dir", help="red-team agents, one subdirectory per controller (default <out>/redteam)")
+  p.add_argument("--redteam-budget", choices=("ci", "full"), default="ci",
+                 help="red-team training budget: ci (CPU minutes, default) or full (GPU-sized)")
+  p.add_argument("--redteam-steps", type=int, help="red-team training env steps (overrides the budget's)")
+  p.add_argument("--redteam-envs", type=int, help="red-team training parallel envs (overrides the budget's)")
+  p.add_argument("--redteam-seed", type=int, default=0, help="red-team training seed (networks, missions, noise)")
   p.add_argument("--designed-rates", metavar="FILE|SENSOR=RATE,...",
                  help="designed campaign ramp rates (bias units / s): a designed_rates.json or gps=1.1,baro=0.25,...")
   p.add_argument("--hazard-lead", default="2,5", metavar="LO,HI", help="hazard campaign lead time range (s)")
@@ -205,9 +220,11 @@ def plan(args) -> dict:
     mission_s = (lo, hi)
 
   campaigns = _csv(args.campaigns) or (E.CAMPAIGNS if args.suite == "hard" else ())
-  bad = [c for c in campaigns if c not in E.CAMPAIGNS]
+  if args.train_redteam and E.REDTEAM not in campaigns:
+    campaigns = tuple(campaigns) + (E.REDTEAM,)
+  bad = [c for c in campaigns if c not in E.CAMPAIGNS + (E.REDTEAM,)]
   if bad:
-    raise ValueError(f"unknown campaign(s) {', '.join(bad)}; choose from {', '.join(E.CAMPAIGNS)}")
+    raise ValueError(f"unknown campaign(s) {', '.join(bad)}; choose from {', '.join(E.CAMPAIGNS + (E.REDTEAM,))}")
   try:
     lead = tuple(float(x) for x in args.hazard_lead.split(","))
   except ValueError:
@@ -216,8 +233,13 @@ def plan(args) -> dict:
     raise ValueError(f"--hazard-lead needs 0 <= LO <= HI, got {args.hazard_lead!r}")
   designed_rates = _parse_rates(args.designed_rates, veh_sensors) if args.designed_rates else None
   single = tuple(s for s in sensors if "+" not in s)
-  camp_settings = E.campaign_settings(tuple(c for c in campaigns if c != "designed"), single, profiles,
-                                      hazard_lead_s=lead)
+  camp_settings = E.campaign_settings(tuple(c for c in campaigns if c not in ("designed", E.REDTEAM)), single,
+                                      profiles, hazard_lead_s=lead)
+  redteam = None
+  if E.REDTEAM in campaigns:
+    redteam = redteam_plan(args, single or veh_sensors, out_dir=args.out or (
+        os.path.join(args.run, "eval") if args.run else os.path.join("runs", "eval")))
+    camp_settings = camp_settings + (E.redteam_setting(redteam["sensors"]),)
 
   def settings_for(sens, multi=False):
     out = [E.setting(None)]
@@ -273,7 +295,62 @@ def plan(args) -> dict:
       else:
         skipped["rover"] = "no rover run given (--runs rover=DIR)"
   return {"groups": groups, "skipped": skipped, "out": out_dir, "mission_s": mission_s, "runs": runs,
-          "profiles": profiles, "campaigns": campaigns, "designed_rates": designed_rates, "hazard_lead_s": lead}
+          "profiles": profiles, "campaigns": campaigns, "designed_rates": designed_rates, "hazard_lead_s": lead,
+          "redteam": redteam}
+
+
+def redteam_plan(args, sensors, out_dir: str) -> dict:
+  """The red-team campaign's plan: {dir, train, config (ppo.redteam.RedteamConfig), sensors}. ValueError (one
+  line) on bad flags."""
+  from specguard_jax.ppo import redteam as RT
+  for flag in ("redteam_steps", "redteam_envs"):
+    v = getattr(args, flag)
+    if v is not None and not 1 <= v <= 1 << 40:
+      raise ValueError(f"--{flag.replace('_', '-')} {v} is not allowed; allowed: 1 to {1 << 40}")
+  if not 0 <= args.redteam_seed <= 2**32 - 1:
+    raise ValueError(f"--redteam-seed {args.redteam_seed} is not allowed; allowed: 0 to {2**32 - 1}")
+  base = RT.BUDGETS[args.redteam_budget]
+  over = {"sensors": tuple(sensors), "seed": args.redteam_seed}
+  if args.redteam_steps:
+    over["steps"] = args.redteam_steps
+  if args.redteam_envs:
+    over["num_envs"] = args.redteam_envs
+  try:
+    cfg = dataclasses.replace(base, **over)
+  except ValueError as e:
+    raise ValueError(f"red-team budget: {e}") from None
+  return {"dir": args.redteam_dir or os.path.join(out_dir, "redteam"), "train": bool(args.train_redteam),
+          "config": cfg, "sensors": tuple(sensors)}
+
+
+def redteam_agent(p: dict, ctrl, env, log=None) -> dict:
+  """The red-team agent of controller `ctrl` flying `env`: loaded from <redteam dir>/<name>/, else trained there
+  (--train-redteam) and saved, then reloaded from disk. Returns {agent, params, dir, trained, train_s, history}.
+  Raises controllers.NotAvailable when there is none and training was not asked for, or the saved one attacks
+  other sensors or steps at another rate."""
+  from specguard_jax import controllers as C
+  from specguard_jax.ppo import redteam as RT
+  rt = p["redteam"]
+  d = os.path.join(rt["dir"], ctrl.name)
+  trained, train_s, history = False, 0.0, []
+  if not RT.exists(d):
+    if not rt["train"]:
+      raise C.NotAvailable(f"no red-team agent at {d} (train one with --train-redteam)")
+    t0 = time.time()
+    agent, params, history = RT.train(env, ctrl.policy, ctrl.params, rt["config"], progress=log)
+    train_s = time.time() - t0
+    RT.save(d, agent, params, rt["config"], history, extra={"controller": ctrl.name, "train_s": train_s})
+    trained = True
+  try:
+    agent, params, meta = RT.load(d)
+  except ValueError as e:
+    raise C.NotAvailable(str(e)) from None
+  if tuple(agent.attack.sensors) != tuple(rt["sensors"]) or abs(agent.dt - env.dt) > 1e-9:
+    raise C.NotAvailable(f"the red-team agent at {d} attacks {','.join(agent.attack.sensors)} at a {agent.dt} s "
+                         f"step; this evaluation: {','.join(rt['sensors'])} at {env.dt} s (another --redteam-dir)")
+  return {"agent": agent, "params": params, "dir": d, "trained": trained,
+          "train_s": train_s if trained else meta.get("train_s"), "history": meta.get("history", history),
+          "config": meta.get("training")}
 
 
 def _parse_rates(spec: str, sensors) -> dict:
@@ -372,6 +449,15 @@ def check_up_front(args, p: dict) -> None:
     except C.NotAvailable as e:
       raise ValueError(f"--runs {name}: {e}") from None
   ctx = p["groups"]["main"]["ctx"]
+  rt = p.get("redteam")
+  if rt and not rt["train"]:
+    from specguard_jax.ppo import redteam as RT
+    for c in p["groups"]["main"]["controllers"]:
+      name = c if isinstance(c, str) else (c[1] if c[0] == "variant" else c[0])
+      d = os.path.join(rt["dir"], name)
+      if not RT.exists(d) and (name == "no_protection" or name in _csv(args.controllers)):
+        raise ValueError(f"--campaigns redteam: no red-team agent at {d} for {name}; train the agents with "
+                         f"--train-redteam (or give --redteam-dir)")
   for name in _csv(args.controllers):
     try:
       C.check(name, ctx)
@@ -406,6 +492,11 @@ def requested_not_run(args, not_run: dict) -> str | None:
     if key.split("/", 1)[1] in asked:
       return f"controller {key} cannot run: {why}"
   return None
+
+
+def _attacker(red) -> dict:
+  """evaluation.rollout's attacker arguments of a job's red-team agent (none: {})."""
+  return {"attacker": red["agent"], "attacker_params": red["params"]} if red else {}
 
 
 def _backend() -> str:
@@ -477,7 +568,18 @@ def main(argv=None) -> int:
       with warnings.catch_warnings():   # the files' notices were shown by check_user_files
         warnings.simplefilter("ignore")
         env = E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})
-      jobs.append((gname, ctrl, env))
+      red = None
+      if p["redteam"] and any(st.redteam for st in g["settings"]):
+        try:
+          red = redteam_agent(p, ctrl, env, log=lambda i, n, row, lab=f"{gname}: red-team agent vs {label}": bar.show(
+              f"{lab} {i}/{n}"))
+        except C.NotAvailable as e:
+          results["not_run"][f"{gname}/{label}"] = str(e)
+          bar.step(f"{gname}: {label} not run")
+          continue
+        results.setdefault("redteam", {})[ctrl.name] = {k: red[k] for k in ("dir", "trained", "train_s", "history",
+                                                                            "config")}
+      jobs.append((gname, ctrl, env, red))
   refused = requested_not_run(args, results["not_run"])
   if refused:
     bar.close()
@@ -485,14 +587,14 @@ def main(argv=None) -> int:
   bar.show(f"compiling {len(jobs)} rollouts")
   compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
                             "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,
-                            "n_traj": args.traj} for gname, ctrl, env in jobs])
+                            "n_traj": args.traj, **_attacker(red)} for gname, ctrl, env, red in jobs])
   results["compile_wall_s"] = compiled["wall"]
-  for i, (gname, ctrl, env) in enumerate(jobs):
+  for i, (gname, ctrl, env, red) in enumerate(jobs):
     g, grp = p["groups"][gname], results["groups"][gname]
     bar.show(f"{gname}: {ctrl.name} ({len(g['settings'])} settings x {missions})")
     timing = {}
     rec, traj, steps = E.rollout(env, ctrl.policy, ctrl.params, g["settings"], missions=missions, seed=args.seed,
-                                 max_s=args.max_s, n_traj=args.traj, timing=timing)
+                                 max_s=args.max_s, n_traj=args.traj, timing=timing, **_attacker(red))
     timing["compile_s"] += compiled.get(i, 0.0)   # this job's own (overlapped) compile, 0 if shared
     records[(gname, ctrl.name)] = rec
     trajs[(gname, ctrl.name)] = traj
@@ -518,6 +620,8 @@ def main(argv=None) -> int:
           "campaigns": list(p["campaigns"]), "hazard_lead_s": list(p["hazard_lead_s"]),
           "designed_rates": {x: r for g in p["groups"].values() for st in g["settings"]
                              if E.campaign_of(st.name) == "designed" for x, r in st.attack.ramp_rate},
+          "redteam": ({"dir": p["redteam"]["dir"], "budget": args.redteam_budget,
+                       "config": R.jsonable(dataclasses.asdict(p["redteam"]["config"]))} if p["redteam"] else None),
           "simulator": "specguard-jax MJX simulator (not AirSim)", "recon": args.recon or "fused",
           "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
                           for c, v in grp["controllers"].items()}}

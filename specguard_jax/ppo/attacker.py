@@ -61,9 +61,53 @@ class AttackerConfig:
       raise ValueError("attacker max_duration_s must be > 0")
 
 
-def _adv_init():
+def adv_init():
+  """The attack agent's per-episode state (unbatched): target sensor index, started / ended flags, onset (s; 1e9
+  until started), attack time used (s), the bias injected this step [6, 3] and whether the attack is on."""
   return {"target": jnp.zeros((), jnp.int32), "started": jnp.zeros((), bool), "ended": jnp.zeros((), bool),
           "onset": jnp.full((), 1e9, jnp.float32), "used": jnp.zeros(()), "bias": jnp.zeros((6, 3)), "on": jnp.zeros(())}
+
+
+def observation(cfg: AttackerConfig, speeds, state: State, adv: dict, sg_setpoint) -> jax.Array:
+  """Attacker observation [45] (module docstring) of an unbatched env state (reads obs and info's time, mission and
+  alarm), the agent's state `adv` and the controller's velocity setpoint [3] (m/s) of this step."""
+  info = state.info
+  speeds = np.asarray(speeds, np.float32)
+  alarm = info.get("alarm", jnp.zeros(()))
+  progress = info["time"] / jnp.maximum(info["mission"].nominal_duration, 1.0)
+  return jnp.concatenate([
+      sg_setpoint / jnp.maximum(speeds, 1e-3), state.obs[:12],
+      (adv["bias"] / (_HI[:, None] * cfg.scale)).reshape(-1), jax.nn.one_hot(adv["target"], 6) * adv["started"],
+      jnp.stack([adv["used"] / cfg.max_duration_s, adv["on"], adv["ended"].astype(jnp.float32), alarm,
+                 jnp.minimum(progress, 2.0), jnp.minimum(state.obs[18], 50.0) / 50.0])]).astype(jnp.float32)
+
+
+def plan(cfg: AttackerConfig, adv: dict, raw, t, dt: float):
+  """(AttackSchedule of this step, the agent's next state) for the raw action [10] at time t (s), unbatched; dt:
+  the env step (s). The schedule is an ordinary one (on from t while the attack is on), so the env treats it as a
+  scripted attack."""
+  allowed = np.array([s in cfg.sensors for s in SENSOR_NAMES])
+  scores = jnp.where(jnp.asarray(allowed), raw[:6], -jnp.inf)
+  launch = raw[9] > 0.0
+  budget_left = adv["used"] < cfg.max_duration_s
+  on = launch & ~adv["ended"] & budget_left
+  target = jnp.where(adv["started"], adv["target"], jnp.argmax(scores)).astype(jnp.int32)
+  hi = jnp.asarray(_HI)[target] * cfg.scale
+  b = jnp.tanh(raw[6:9]) * hi * jnp.asarray(_DIMS)[target]
+  b = b * jnp.minimum(1.0, hi / (math3d.norm(b) + 1e-9))
+  onset = jnp.where(on & ~adv["started"], t, adv["onset"])
+  onehot = jax.nn.one_hot(target, 6)
+  bias = onehot[:, None] * b[None, :] * on
+  sched = attacks_lib.AttackSchedule(
+      mask=jnp.asarray(onehot * on, jnp.float32), bias=jnp.asarray(bias, jnp.float32),
+      onset=jnp.asarray(jnp.where(on, t, 1e9), jnp.float32), duration=jnp.full((), 1e9, jnp.float32),
+      ramp_time=jnp.ones(()), profile=jnp.asarray(0, jnp.int32))
+  started = adv["started"] | on
+  ended = adv["ended"] | (adv["started"] & ~on)
+  f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731  strong types: a weak-typed carry would recompile the step
+  new_adv = {"target": target, "started": started, "ended": ended, "onset": f32(onset),
+             "used": f32(adv["used"] + on * dt), "bias": f32(bias), "on": f32(on)}
+  return sched, new_adv
 
 
 class AttackerEnv(Wrapper):
@@ -82,48 +126,21 @@ class AttackerEnv(Wrapper):
   def reset(self, rng):
     s = self.env.reset(rng)
     none = jax.tree.map(lambda x: jnp.asarray(x, x.dtype), attacks_lib.no_attack())  # strong-typed leaves
-    return s.replace(info=dict(s.info, adv=_adv_init(), attack=none, aa_extra=jnp.zeros(())))
+    return s.replace(info=dict(s.info, adv=adv_init(), attack=none, aa_extra=jnp.zeros(())))
 
   def observe(self, state: State, sg_setpoint) -> jax.Array:
     """Attacker observation [45] given SpecGuard's velocity setpoint [3] (m/s) of this step."""
-    info, adv = state.info, state.info["adv"]
-    alarm = info.get("alarm", jnp.zeros(()))
-    progress = info["time"] / jnp.maximum(info["mission"].nominal_duration, 1.0)
-    return jnp.concatenate([
-        sg_setpoint / jnp.maximum(self.speeds, 1e-3), state.obs[:12],
-        (adv["bias"] / (_HI[:, None] * self.cfg.scale)).reshape(-1), jax.nn.one_hot(adv["target"], 6) * adv["started"],
-        jnp.stack([adv["used"] / self.cfg.max_duration_s, adv["on"], adv["ended"].astype(jnp.float32), alarm,
-                   jnp.minimum(progress, 2.0), jnp.minimum(state.obs[18], 50.0) / 50.0])]).astype(jnp.float32)
+    return observation(self.cfg, self.speeds, state, state.info["adv"], sg_setpoint)
 
   def step(self, state: State, action) -> State:
     cfg, info = self.cfg, state.info
-    adv = info["adv"]
     sg_action, raw = action[:3], action[3:]
-    t = info["time"]
-    scores = jnp.where(jnp.asarray(self.allowed), raw[:6], -jnp.inf)
-    launch = raw[9] > 0.0
-    budget_left = adv["used"] < cfg.max_duration_s
-    on = launch & ~adv["ended"] & budget_left
-    target = jnp.where(adv["started"], adv["target"], jnp.argmax(scores)).astype(jnp.int32)
-    hi = jnp.asarray(_HI)[target] * cfg.scale
-    b = jnp.tanh(raw[6:9]) * hi * jnp.asarray(_DIMS)[target]
-    b = b * jnp.minimum(1.0, hi / (math3d.norm(b) + 1e-9))
-    onset = jnp.where(on & ~adv["started"], t, adv["onset"])
-    onehot = jax.nn.one_hot(target, 6)
-    bias = onehot[:, None] * b[None, :] * on
-    sched = attacks_lib.AttackSchedule(
-        mask=jnp.asarray(onehot * on, jnp.float32), bias=jnp.asarray(bias, jnp.float32),
-        onset=jnp.asarray(jnp.where(on, t, 1e9), jnp.float32), duration=jnp.full((), 1e9, jnp.float32),
-        ramp_time=jnp.ones(()), profile=jnp.asarray(0, jnp.int32))
+    sched, new_adv = plan(cfg, info["adv"], raw, info["time"], self.env.dt)
     out = self.env.step(state.replace(info=dict(info, attack=sched)), sg_action)
-    started = adv["started"] | on
-    ended = adv["ended"] | (adv["started"] & ~on)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # strong types: a weak-typed carry would recompile the step
-    new_adv = {"target": target, "started": started, "ended": ended, "onset": f32(onset),
-               "used": f32(adv["used"] + on * self.env.dt), "bias": f32(bias), "on": f32(on)}
+    on = new_adv["on"]
     alarm = out.info.get("alarm", jnp.zeros(()))
     risk = jnp.clip(1.0 - out.obs[18] / 20.0, 0.0, 1.0)
-    extra = f32(cfg.beta * on * (1.0 - alarm) + cfg.gamma * on * risk)
+    extra = jnp.asarray(cfg.beta * on * (1.0 - alarm) + cfg.gamma * on * risk, jnp.float32)
     return out.replace(info=dict(out.info, adv=new_adv, aa_extra=extra))
 
   def reward(self, sg_reward, extra):
