@@ -29,6 +29,7 @@ from flax import struct
 from mujoco import mjx
 
 from envs import missions as missions_lib
+from envs import observation as obs_lib
 from envs import worlds as worlds_lib
 from specguard_jax import assets
 from specguard_jax import attacks as attacks_lib
@@ -46,10 +47,11 @@ from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import CONTROL_MODES, DETECTORS, RECON_MODES, REWARDS, SensorReadings, TrueState
+from specguard_jax.types import CONTROL_MODES, DETECTORS, RECON_MODES, REWARDS, SENSOR_NAMES, SensorReadings, TrueState
 
 ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
-OBS_SIZE = 24
+OBS_SIZE = 24   # entries of the paper24 observation layout (envs.observation); the env's: observation_size
+PROXIMITY_STREAM = 0x0B5   # fold_in tag of the range sensors' noise key
 OVERRIDE_FRAMES = ("world", "body")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
@@ -159,6 +161,12 @@ class EnvConfig:
   # for more compile per env variant (bench/env_step_ab.py, docs/PERFORMANCE.md): worth it for long runs, not for the
   # default one (train.py --unroll-ticks).
   unroll_ticks: bool = False
+  # The policy's observation (envs.observation): "paper24" the paper's x'_t and mission context from the estimate (24
+  # inputs); "recovery" adds the alarm, the diagnosed-sensor mask, the time since the alarm, the estimate's 1-sigma
+  # and a ring of `proximity_sectors` range sensors (noisy, capped at `proximity_range` m) on the true geometry.
+  obs_layout: str = "paper24"
+  proximity_sectors: int = 8
+  proximity_range: float = 20.0
 
   def validate(self):
     check_env_values(self)
@@ -193,6 +201,8 @@ class EnvConfig:
                        "reconstruction=True")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
+    if self.obs_layout not in obs_lib.LAYOUTS:
+      raise ValueError(f"unknown obs_layout {self.obs_layout!r}; choose one of {', '.join(obs_lib.LAYOUTS)}")
 
 
 def tree_where(cond, a, b):
@@ -210,6 +220,8 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   for name in ("tick_dt", "max_episode_s", "stall_s"):
     checks.number(prefix + name, getattr(cfg, name), 0, lo_open=True)
   checks.integer(f"{prefix}ticks_per_step", cfg.ticks_per_step, 1)
+  checks.integer(f"{prefix}proximity_sectors", cfg.proximity_sectors, 1, 64)
+  checks.number(f"{prefix}proximity_range", cfg.proximity_range, 0, 1e3, lo_open=True)
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
   for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
@@ -316,7 +328,7 @@ class RAVEnv(Env):
   # ---------------------------------------------------------------- Env API
   @property
   def observation_size(self) -> int:
-    return OBS_SIZE
+    return obs_lib.size(self.config.obs_layout, self.config.proximity_sectors)
 
   @property
   def action_size(self) -> int:
@@ -395,7 +407,7 @@ class RAVEnv(Env):
     info["spec_monitor"] = monitor
     info["spec_robustness"] = spec_rob
     info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary")[1]
-    obs = self._observation(world, mission, sim)
+    obs = self._observation(world, mission, sim, key=k_run)
     metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
     return State(pipeline_state=phys, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
                  info=info)
@@ -474,7 +486,7 @@ class RAVEnv(Env):
     if self.config.nan_fallback:
       phys = tree_where(finite, phys, state.pipeline_state)
       sim = tree_where(finite, sim, sim0)
-    obs = self._observation(world, mission, sim, obstacle=(d_est, g_est))
+    obs = self._observation(world, mission, sim, obstacle=(d_est, g_est), key=k_ticks)
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
     with jax.named_scope("stl_reward"):
@@ -656,12 +668,14 @@ class RAVEnv(Env):
     """[3] the position the observation is built from: the EKF's, or the reconstructed one (phase 2), m."""
     return sim["x_rec"][0:3] if self.config.reconstruction else sim["ekf"].pos
 
-  def _observation(self, world, mission, sim, obstacle=None) -> jax.Array:
-    """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
-    target waypoint, velocity, acceleration, Euler angles) + mission context: direction of the next leg [3],
-    unit direction to the nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude,
-    horizontal speed, waypoint slack (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated
-    position if already at hand (worlds.obstacle_queries), else computed here."""
+  def _observation(self, world, mission, sim, obstacle=None, key=None) -> jax.Array:
+    """Policy input [observation_size] in the layout `config.obs_layout` (envs.observation). Its first 24 entries
+    from the ESTIMATED state (so attacks reach them): the paper's x'_t (position relative to the target waypoint,
+    velocity, acceleration, Euler angles) + mission context: direction of the next leg [3], unit direction to the
+    nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude, horizontal speed, waypoint slack
+    (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated position if already at hand
+    (worlds.obstacle_queries), else computed here. key: this step's PRNG key (the range sensors' noise, drawn from
+    a key folded out of it so the other random streams do not change with the layout)."""
     ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
     pos = self._estimated_position(sim)
     if self.config.reconstruction:   # x'_t as reconstructed (equals the EKF's while the alarm is down)
@@ -683,7 +697,26 @@ class RAVEnv(Env):
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
                    pos[2] - self._ground_offset(), math3d.norm(vel[:2]),
                    jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
+    if self.config.obs_layout == "recovery":
+      obs = jnp.concatenate([obs, self._recovery_context(world, sim, key)])
     return obs.astype(jnp.float32)
+
+  def _recovery_context(self, world, sim, key) -> jax.Array:
+    """The `recovery` layout's entries after the first 24 (envs.observation.recovery_context)."""
+    cfg = self.config
+    if "det" in sim:
+      det = sim["det"]
+      alarm, diagnosed, since = det.alarm, det.mask, det.time_since_alarm
+    else:
+      alarm, diagnosed, since = jnp.zeros(()), jnp.zeros(len(SENSOR_NAMES)), jnp.zeros(())
+    std = recon_lib.recon_std(sim["recon"]) if cfg.reconstruction else ekf_lib.std_groups(sim["ekf"].P)
+    truth = sim["truth"]
+    ranges = worlds_lib.proximity_ranges(world, self._query_pos(truth.pos), math3d.quat_to_euler(truth.quat)[2],
+                                         cfg.proximity_sectors, cfg.proximity_range)
+    key = jax.random.PRNGKey(0) if key is None else key
+    ranges = obs_lib.noisy_ranges(ranges, jax.random.fold_in(key, PROXIMITY_STREAM), cfg.proximity_range,
+                                  obs_lib.RangeSensorConfig())
+    return obs_lib.recovery_context(alarm, diagnosed, since, std, ranges)
 
   def _override_velocity(self, action, sim):
     """Action [3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""

@@ -1,5 +1,8 @@
 """Detector wired into the env tick, and the reactive (SpecGuard-RC) switch driven by its alarm."""
 
+import copy
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -25,13 +28,31 @@ def test_config_errors():
 
 
 def test_residual_detector_in_env_flags_and_names_gps_spoof():
-  env = envs.make("drone", world="open_beach", mission=MISSION, detector="residual", domain_randomization=False)
+  """The alarm and diagnosis in info, and the same in the policy's recovery context (envs.observation)."""
+  env = envs.make("drone", world="open_beach", mission=MISSION, detector="residual", domain_randomization=False,
+                  obs_layout="recovery")
   sched = attacks.schedule_for("gps", [30.0, 0.0, 0.0], onset=15.0, duration=100.0)
   state, _, _ = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(7), 2), 170, attacks=_pair(sched))
   # 17 s flown: the overt spoof started at 15 s; the alarm is up and names the GPS (index 0).
+  gps = attacks.SENSOR_NAMES.index("gps")
   assert np.all(np.asarray(state.info["alarm"]) == 1.0)
-  assert np.all(np.asarray(state.info["diagnosis"]) == attacks.SENSOR_NAMES.index("gps"))
+  assert np.all(np.asarray(state.info["diagnosis"]) == gps)
   assert np.all(np.asarray(state.info["episode"]["detected"]) == 1.0)
+  obs = np.asarray(state.obs)
+  assert obs.shape == (2, env.observation_size) and env.observation_size == 24 + 1 + 6 + 1 + 4 + 8
+  alarm, diagnosed, since, std, ranges = obs[:, 24], obs[:, 25:31], obs[:, 31], obs[:, 32:36], obs[:, 36:]
+  assert np.all(alarm == 1.0) and np.all(diagnosed[:, gps] == 1.0)
+  np.testing.assert_array_equal(diagnosed, np.asarray(state.info["sim"]["det"].mask))
+  # raised within the 2 s since the onset, counted in env steps of 0.1 s
+  assert np.all((since > 0.0) & (since <= 2.0)) and np.allclose(since * 10, np.round(since * 10), atol=1e-3)
+  assert np.all(std > 0.0) and np.all(std[:, 0] < 50.0)
+  assert np.all((ranges >= 0.0) & (ranges <= 20.0))
+  # the first 24 entries are the paper layout's observation of the same state
+  paper = copy.copy(env)
+  paper.config = dataclasses.replace(env.config, obs_layout="paper24")
+  one = jax.tree.map(lambda x: x[0], state.info)
+  obs24 = jax.jit(lambda i: paper._observation(i["world"], i["mission"], i["sim"]))(one)
+  np.testing.assert_allclose(obs[0, :24], np.asarray(obs24), rtol=1e-6, atol=1e-6)
 
 
 def test_reactive_override_follows_oracle_alarm():

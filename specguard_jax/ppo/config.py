@@ -70,7 +70,8 @@ class PPOConfig:
 
 
 TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
-                      detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto")
+                      detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto",
+                      obs_layout="recovery")
 """TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
 the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
 

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs import observation as obs_lib
 from specguard_jax import export
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import ahead as ahead_lib
@@ -355,7 +356,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     if sg_state is None:  # resumed after the last phase: restore the final carry
       number = phases[-1]
       phase = it.make_phase(cfg, number, mesh)
-      sg0 = phase.sg.init(k_sg, 24)
+      sg0 = phase.sg.init(k_sg, phase.env.observation_size if number == 1 else phase.env.env.observation_size)
       aa0 = phase.aa.init(k_aa, attacker_lib.N_OBS)
       fresh = abstract_carry(phase, jax.random.fold_in(k_phase, number), sg0, aa0)
       carry = _restore_carry(mgr, mgr.latest_step(), fresh)
@@ -416,11 +417,13 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   policy = it.sg_policy(cfg)
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
-  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip)
+  layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors)
+  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip, obs_layout=layout)
   # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
   with jax.default_matmul_precision("float32"):
     res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
-                             clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant})
+                             clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant,
+                                                                  "obs_layout": layout})
   return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in res.items()}
 
 
