@@ -151,7 +151,7 @@ def load_run_config(run_dir: str):
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
-    return config_lib.load_config_file(path).with_env(ekf_kernel="xla").validate()
+    return config_lib.load_config_file(path, run=True).with_env(ekf_kernel="xla").validate()
   except ValueError as e:
     msg = " ".join(str(e).split())
     raise NotAvailable(msg if path in msg else f"{path}: {msg}") from None

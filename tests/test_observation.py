@@ -142,3 +142,19 @@ def test_a_run_records_its_layout_and_evaluation_builds_it(tmp_path):
   cfg_path.write_text(json.dumps(cfg))
   with pytest.raises(controllers.NotAvailable, match="layout 'lidar360' version 3 .42 inputs., which this version"):
     controllers.obs_overrides(str(tmp_path / "new"))
+
+
+def test_an_old_run_config_keeps_the_paper_layout(tmp_path):
+  """A run's config.json written before layouts existed has no env.obs_layout: resuming or evaluating it builds the
+  24-input observation its checkpoint was trained on, where a new config file gets the trainer's default."""
+  from specguard_jax.ppo import config as config_lib
+  d = config_lib.TrainConfig().to_dict()
+  assert d["env"]["obs_layout"] == "recovery"
+  del d["env"]["obs_layout"]
+  path = tmp_path / "config.json"
+  path.write_text(json.dumps(d))
+  assert config_lib.load_config_file(str(path), run=True).env.obs_layout == "paper24"
+  assert config_lib.load_config_file(str(path)).env.obs_layout == "recovery"
+  d["env"]["obs_layout"] = "recovery"
+  path.write_text(json.dumps(d))
+  assert config_lib.load_config_file(str(path), run=True).env.obs_layout == "recovery"

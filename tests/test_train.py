@@ -224,7 +224,7 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
   cfg = tiny(phase2_steps=256)
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
-  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   out = jax.eval_shape(lambda c: ph.run(c)[0], c)
   a, b = jax.tree.leaves(c), jax.tree.leaves(out)
   assert jax.tree.structure(c) == jax.tree.structure(out)
@@ -245,7 +245,7 @@ def _dot_precisions(cfg, phase, precision=True):
   dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
-  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   txt = ph.run.lower(c).as_text(debug_info=True)
   locs = dict(re.findall(r"^(#loc\d+) = (.*)$", txt, re.M))
 
@@ -370,8 +370,12 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
   """config.env_config builds, for the default run and two others, exactly the EnvConfigs the trainer built when
   TrainConfig mirrored the env fields (written out here): phase 1, phase 2 (training detector) and the held-out
   evaluation's (eval_detector, EnvConfig's defaults for the speed options)."""
-  from envs.base import EnvConfig
+  from envs import base
   from specguard_jax import controllers
+
+  def EnvConfig(**kw):   # every run config here has the trainer's observation layout (TRAIN_ENV)
+    return base.EnvConfig(**{"obs_layout": "recovery", **kw})
+
   expected = {
       "default": (config.TrainConfig(), (
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="override",
@@ -422,8 +426,9 @@ def test_old_flat_config_json_loads_into_env_and_resumes(tmp_path):
                                         override_residual=False, reconstruction=False, detector="residual",
                                         detector_delay=1.0, unroll_ticks=True, ekf_kernel="xla")
   (tmp_path / "config.json").write_text(json.dumps(OLD_FLAT_CONFIG))
-  assert runner.load_run_config(str(tmp_path)) == cfg
-  assert controllers.load_run_config(str(tmp_path)) == cfg
+  # a run written before observation layouts were recorded was trained on the 24-input one
+  assert runner.load_run_config(str(tmp_path)) == cfg.with_env(obs_layout="paper24")
+  assert controllers.load_run_config(str(tmp_path)) == cfg.with_env(obs_layout="paper24")
   d = json.loads(json.dumps(cfg.to_dict()))
   assert "worlds" not in d and d["env"]["worlds"] == ["urban_park"] and d["env"]["mission"] is None
   assert config.from_dict(d) == cfg
@@ -540,7 +545,7 @@ def _final_sg(cfg, run_dir):
   mgr = runner._checkpointer(str(run_dir))
   ph = iteration.make_phase(cfg, 2)
   k = jax.random.PRNGKey(0)
-  abstract = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  abstract = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   carry = runner._restore_carry(mgr, mgr.latest_step(), abstract)
   mgr.close()
   return carry
@@ -562,7 +567,7 @@ def test_interrupted_run_resumes_bit_identical(runs):
                                                             (2, 4)]
   f1 = export.load_jax_policy(str(runs["root"] / "full"))
   f2 = export.load_jax_policy(str(runs["root"] / "part"))
-  x = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
+  x = np.random.default_rng(0).normal(size=(5, runs["cfg"].n_obs)).astype(np.float32)
   np.testing.assert_array_equal(np.asarray(f1(x)["setpoint"]), np.asarray(f2(x)["setpoint"]))
 
 
@@ -663,7 +668,9 @@ def test_tiny_train_evaluate_export_smoke(runs):
     if k[0] != "_":
       assert 0.0 <= v["svr"] <= 1.0 and v["unfinished"] == 0.0, (k, v)
   fn = export.load_jax_policy(str(run))
-  out = fn(np.zeros((2, 24), np.float32))
+  assert runs["cfg"].n_obs == 44    # the trainer's default layout, recorded with the policy
+  assert export.load_obs_layout(str(run))["name"] == "recovery"
+  out = fn(np.zeros((2, 44), np.float32))
   assert np.all(np.isfinite(np.asarray(out["setpoint"])))
 
 

@@ -8,6 +8,7 @@ import json
 import jax
 
 from envs.base import EnvConfig, check_env_values
+from envs import observation as obs_lib
 from envs import worlds as worlds_lib
 from envs.worlds import DEFAULT_WORLDS
 from specguard_jax import checks
@@ -161,6 +162,11 @@ class TrainConfig:
   # and tanh in bf16, halving the activations' memory traffic; f32 parameters, optimizer, losses and outputs).
   # Evaluation and the ONNX export stay float32.
   network_dtype: str = "float32"
+
+  @property
+  def n_obs(self) -> int:
+    """SpecGuard's observation size: its env's layout (envs.observation)."""
+    return obs_lib.size(self.env.obs_layout, self.env.proximity_sectors)
 
   def with_env(self, **kw) -> "TrainConfig":
     """This config with these fields of `env` replaced (e.g. cfg.with_env(worlds=("urban_park",)))."""
@@ -353,10 +359,15 @@ def nested(items: dict) -> dict:
   return d
 
 
-def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
-  """TrainConfig from a JSON file (a --config file or a run directory's config.json) through `from_dict`; every
-  problem (unreadable, not UTF-8, not JSON, nested too deeply, not an object, a bad key or value) is a one-line
-  ValueError naming the file."""
+# EnvConfig fields a run directory's config.json may lack because the run was written before they existed, with the
+# value every such run had (not today's default): a resumed or evaluated old run builds the env it was trained in.
+LEGACY_RUN_ENV = {"obs_layout": "paper24"}
+
+
+def load_config_file(path: str, base: TrainConfig | None = None, *, run: bool = False) -> TrainConfig:
+  """TrainConfig from a JSON file (a --config file or, run=True, a run directory's config.json, whose missing env
+  fields of LEGACY_RUN_ENV take their legacy value) through `from_dict`; every problem (unreadable, not UTF-8, not
+  JSON, nested too deeply, not an object, a bad key or value) is a one-line ValueError naming the file."""
   try:
     with open(path, encoding="utf-8") as f:
       d = json.load(f)
@@ -366,6 +377,11 @@ def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
     raise ValueError(f"cannot read config file {path}: JSON nested too deeply") from None
   if not isinstance(d, dict):
     raise ValueError(f"config file {path} must hold a JSON object, got a JSON {type(d).__name__}")
+  if run:
+    env = d.get("env") if isinstance(d.get("env"), dict) else {}
+    legacy = {k: v for k, v in LEGACY_RUN_ENV.items() if k not in env}
+    base = base or TrainConfig()
+    base = dataclasses.replace(base, env=dataclasses.replace(base.env, **legacy)) if legacy else base
   try:
     return from_dict(d, base).check_values()
   except ValueError as e:
