@@ -53,6 +53,7 @@ ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.a
 OBS_SIZE = 24   # entries of the paper24 observation layout (envs.observation); the env's: observation_size
 PROXIMITY_STREAM = 0x0B5   # fold_in tag of the range sensors' noise key
 OVERRIDE_FRAMES = ("world", "body")
+OVERRIDE_PHASES = ("cruise_loiter", "all")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
 PAPER_LAG_S = 1.0   # s; least checkpoint lag of the paper-mode reconstruction (EnvConfig.recon_mode, _recon_config)
@@ -93,7 +94,7 @@ class EnvConfig:
   its world uniformly from them (training across operating environments) and `world` is ignored.  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
   max_episode_s: hard cap on an episode (s); the per-mission limit is 2 x nominal duration + 30 s, below this cap.
   stall_s: no progress (1 m closer to the target) for this long -> stall.  control_mode: 'autopilot' (action ignored)
-  or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter; SpecGuard-PC) or
+  or 'override' (the action is a velocity setpoint that replaces the navigator's in the override_phases; SpecGuard-PC) or
   'reactive' (the override applies only while the detector's alarm is up; SpecGuard-RC: the recovery switch hands
   control back to the autopilot when the alarm clears).  detector: attack detector run every tick on the attacked
   readings and the EKF ('residual' or 'oracle'); its alarm/diagnosis are in info['alarm'] / info['diagnosis'].
@@ -165,6 +166,10 @@ class EnvConfig:
   # inputs); "recovery" adds the alarm, the diagnosed-sensor mask, the time since the alarm, the estimate's 1-sigma
   # and a ring of `proximity_sectors` range sensors (noisy, capped at `proximity_range` m) on the true geometry.
   obs_layout: str = "paper24"
+  # Mission phases in which the policy's setpoint applies (while control_mode lets it act): "cruise_loiter" (the
+  # waypoint legs and the loiter, as the paper's velocity override) or "all" (take-off, cruise, loiter, descent and
+  # landing too: where gyro, accelerometer and barometer attacks cause their failures).
+  override_phases: str = "cruise_loiter"
   proximity_sectors: int = 8
   proximity_range: float = 20.0
 
@@ -201,8 +206,18 @@ class EnvConfig:
                        "reconstruction=True")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
+    if self.override_phases not in OVERRIDE_PHASES:
+      raise ValueError(f"unknown override_phases {self.override_phases!r}; choose one of {', '.join(OVERRIDE_PHASES)}")
     if self.obs_layout not in obs_lib.LAYOUTS:
       raise ValueError(f"unknown obs_layout {self.obs_layout!r}; choose one of {', '.join(obs_lib.LAYOUTS)}")
+
+
+def override_in_phase(override_phases: str, nav_phase):
+  """Whether the policy's setpoint may act in navigator phase nav_phase (EnvConfig.override_phases): "all" every
+  flight phase (not DONE), "cruise_loiter" CRUISE and LOITER. Bool array of nav_phase's shape."""
+  if override_phases == "all":
+    return nav_phase != nav_lib.DONE
+  return (nav_phase == nav_lib.CRUISE) | (nav_phase == nav_lib.LOITER)
 
 
 def tree_where(cond, a, b):
@@ -575,7 +590,7 @@ class RAVEnv(Env):
       d_est, g_est = worlds_lib.obstacle_sdf_and_grad(world, self._query_pos(est.pos))
       vel_nav = fallback_lib.apply(self.fallback_cfg, vel_nav, fallback_lib.position_sigma(sim["recon"]), d_est,
                                    g_est, sim["det"].alarm > 0)
-    use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
+    use_override = override & override_in_phase(cfg.override_phases, nav.phase)
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)

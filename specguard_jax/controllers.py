@@ -164,7 +164,8 @@ def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   rec = ev.reconstruction if reconstruction is None else reconstruction
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
           ("override_residual", bool(ev.override_residual)), ("detector", ev.detector),
-          ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)))
+          ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)),
+          ("override_phases", ev.override_phases))
 
 
 def load_run_policy(run_dir: str):

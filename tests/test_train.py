@@ -374,7 +374,7 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
   from specguard_jax import controllers
 
   def EnvConfig(**kw):   # every run config here has the trainer's observation layout (TRAIN_ENV)
-    return base.EnvConfig(**{"obs_layout": "recovery", **kw})
+    return base.EnvConfig(**{"obs_layout": "recovery", "override_phases": "all", **kw})
 
   expected = {
       "default": (config.TrainConfig(), (
@@ -409,7 +409,7 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
     assert got == want, name
   assert controllers.run_overrides(config.TrainConfig()) == (
       ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
-      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True))
+      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"))
   cfg = tiny(phase2_steps=256)   # the envs the trainer and the held-out evaluation build carry these configs
   assert iteration.make_env(cfg, 1).config == config.env_config(cfg, 1)
   assert iteration.make_env(cfg, 2).env.config == config.env_config(cfg, 2)
@@ -426,9 +426,9 @@ def test_old_flat_config_json_loads_into_env_and_resumes(tmp_path):
                                         override_residual=False, reconstruction=False, detector="residual",
                                         detector_delay=1.0, unroll_ticks=True, ekf_kernel="xla")
   (tmp_path / "config.json").write_text(json.dumps(OLD_FLAT_CONFIG))
-  # a run written before observation layouts were recorded was trained on the 24-input one
-  assert runner.load_run_config(str(tmp_path)) == cfg.with_env(obs_layout="paper24")
-  assert controllers.load_run_config(str(tmp_path)) == cfg.with_env(obs_layout="paper24")
+  # a run written before observation layouts and override phases existed: the 24-input layout, cruise and loiter
+  old = cfg.with_env(obs_layout="paper24", override_phases="cruise_loiter")
+  assert runner.load_run_config(str(tmp_path)) == old and controllers.load_run_config(str(tmp_path)) == old
   d = json.loads(json.dumps(cfg.to_dict()))
   assert "worlds" not in d and d["env"]["worlds"] == ["urban_park"] and d["env"]["mission"] is None
   assert config.from_dict(d) == cfg

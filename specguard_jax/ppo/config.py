@@ -72,7 +72,7 @@ class PPOConfig:
 
 TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
                       detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto",
-                      obs_layout="recovery")
+                      obs_layout="recovery", override_phases="all")
 """TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
 the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
 
@@ -361,7 +361,7 @@ def nested(items: dict) -> dict:
 
 # EnvConfig fields a run directory's config.json may lack because the run was written before they existed, with the
 # value every such run had (not today's default): a resumed or evaluated old run builds the env it was trained in.
-LEGACY_RUN_ENV = {"obs_layout": "paper24"}
+LEGACY_RUN_ENV = {"obs_layout": "paper24", "override_phases": "cruise_loiter"}
 
 
 def load_config_file(path: str, base: TrainConfig | None = None, *, run: bool = False) -> TrainConfig:
