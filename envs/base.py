@@ -47,11 +47,13 @@ from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import CONTROL_MODES, DETECTORS, RECON_MODES, REWARDS, SENSOR_NAMES, SensorReadings, TrueState
+from specguard_jax.types import (CONTROL_MODES, DETECTORS, RECON_MODES, RESIDUAL_DETECTORS, REWARDS, SENSOR_NAMES,
+                                SensorReadings, TrueState)
 
 ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
 OBS_SIZE = 24   # entries of the paper24 observation layout (envs.observation); the env's: observation_size
 PROXIMITY_STREAM = 0x0B5   # fold_in tag of the range sensors' noise key
+ORACLE_STREAM = 0x0AC     # fold_in tag of detector "mixed"'s per-episode draw
 OVERRIDE_FRAMES = ("world", "body")
 OVERRIDE_PHASES = ("cruise_loiter", "all")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
@@ -120,7 +122,9 @@ class EnvConfig:
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
   attack: Any = None  # specguard_jax.attacks.AttackConfig: a random attack per episode; None -> no attack
   detector: str = "none"        # 'none' | 'residual' (CUSUM detector + diagnosis) | 'oracle' (true attack, delayed)
+                                # | 'mixed' (per episode: the oracle with probability oracle_share, else residual)
   detector_delay: float = 0.0   # oracle detection delay (s)
+  oracle_share: float = 0.25    # detector 'mixed': share of episodes whose alarm and diagnosis are the oracle's
   detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
   override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
@@ -187,8 +191,8 @@ class EnvConfig:
       raise ValueError(f"unknown detector {self.detector!r}; choose one of {DETECTORS}")
     if self.control_mode == "reactive" and self.detector == "none":
       raise ValueError("control_mode='reactive' needs a detector ('residual' or 'oracle')")
-    if self.detector == "residual" and not self.ekf_records:
-      raise ValueError("detector='residual' reads the EKF's test ratios: it needs ekf_records=True")
+    if self.detector in RESIDUAL_DETECTORS and not self.ekf_records:
+      raise ValueError(f"detector={self.detector!r} reads the EKF's test ratios: it needs ekf_records=True")
     if self.reconstruction and self.detector == "none":
       raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
     if self.recon_mode not in RECON_MODES:
@@ -239,6 +243,7 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   checks.number(f"{prefix}proximity_range", cfg.proximity_range, 0, 1e3, lo_open=True)
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
+  checks.number(f"{prefix}oracle_share", cfg.oracle_share, 0, 1)
   for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
                "ekf_records", "unroll_ticks"):
     checks.one_of(prefix + name, getattr(cfg, name), (True, False))
@@ -318,8 +323,9 @@ class RAVEnv(Env):
     cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg, mode=self.config.recon_mode)
     if cfg.mode != "paper":
       return cfg
-    delay = (self.config.detector_delay if self.config.detector == "oracle"
-             else max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s))
+    residual = max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s)
+    delay = {"oracle": self.config.detector_delay, "residual": residual,
+             "mixed": max(residual, self.config.detector_delay)}[self.config.detector]
     lag = int(np.ceil(max(PAPER_LAG_S, delay) / self.config.tick_dt - 1e-6))
     calib = int(round(cfg.paper_calib_s / self.config.tick_dt))   # entries before the checkpoint, for calibration
     cfg = dataclasses.replace(cfg, lag=lag, window=max(cfg.window, lag + 1 + calib))
@@ -397,6 +403,8 @@ class RAVEnv(Env):
     }
     if self.config.detector != "none":
       sim["det"] = detection_lib.detector_init(self.det_cfg)
+    if self.config.detector == "mixed":   # this episode's detector: the oracle (True) or the residual one
+      sim["det_oracle"] = jax.random.uniform(jax.random.fold_in(k_run, ORACLE_STREAM)) < self.config.oracle_share
     if self.config.reconstruction:
       sim["recon"] = recon_lib.recon_init(self.recon_cfg, ekf)
       sim["x_rec"] = recon_lib.input_vector(ekf, readings)
@@ -560,10 +568,14 @@ class RAVEnv(Env):
     with jax.named_scope("ekf"):
       ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
     with jax.named_scope("detector"):
-      if cfg.detector == "residual":   # actuation of the previous tick produced these readings
+      if cfg.detector in RESIDUAL_DETECTORS:   # actuation of the previous tick produced these readings
         hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
-        sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf,
-                                                          self._actuation(sim), cfg.tick_dt, hold))
+        det = detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
+                                            cfg.tick_dt, hold)
+        if cfg.detector == "mixed":   # an oracle episode's state is the oracle's throughout
+          det = tree_where(sim["det_oracle"], detection_lib.oracle_update(sim["det"], attack, sim["nav"].time,
+                                                                          cfg.tick_dt, cfg.detector_delay), det)
+        sim = dict(sim, det=det)
       elif cfg.detector == "oracle":
         sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
                                                         cfg.detector_delay))
@@ -572,7 +584,10 @@ class RAVEnv(Env):
       u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
       handback = sim["recon"].active & ~(sim["det"].alarm > 0)
       # A GPS blamed by the residual detector: the shadow restarts from its GPS-free dead reckoning.
-      anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
+      anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector in RESIDUAL_DETECTORS
+                else None)
+      if cfg.detector == "mixed":   # the oracle's episodes have no dead reckoning (recon_tick skips a NaN anchor)
+        anchor = jnp.where(sim["det_oracle"], jnp.nan, anchor)
       with jax.named_scope("reconstruction"):
         rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                        u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,

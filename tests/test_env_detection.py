@@ -57,25 +57,33 @@ def test_residual_detector_in_env_flags_and_names_gps_spoof():
 
 def test_reactive_override_follows_oracle_alarm():
   """RC: the policy's setpoint is used only while the (oracle, 1 s delay) alarm is up; before it the navigator
-  flies, after it ends the recovery switch hands control back."""
-  env = envs.make("drone", world="open_beach", mission=MISSION, control_mode="reactive", detector="oracle",
-                  detector_delay=1.0, domain_randomization=False)
+  flies, after it ends the recovery switch hands control back. Detector 'mixed' (the trainer's): each episode is the
+  oracle's with probability oracle_share, else the residual detector's, which a zero bias never alarms."""
+  env = envs.make("drone", world="open_beach", mission=MISSION, control_mode="reactive", detector="mixed",
+                  oracle_share=0.5, detector_delay=1.0, domain_randomization=False)
   sched = attacks.schedule_for("baro", [0.0], onset=12.0, duration=5.0)   # a zero bias: flight unchanged
 
   def policy(obs, key):
     return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0]), obs.shape[:-1] + (3,))  # hover when in control
 
+  n = 4
   step = jax.jit(jax.vmap(env.step))
-  state = jax.jit(jax.vmap(env.reset_in_world))(jax.random.split(jax.random.PRNGKey(8), 2), None, None, _pair(sched))
+  state = jax.jit(jax.vmap(env.reset_in_world))(jax.random.split(jax.random.PRNGKey(8), n), None, None,
+                                               jax.tree.map(lambda x: jnp.stack([x] * n), sched))
+  oracle = np.asarray(state.info["sim"]["det_oracle"])
+  assert 0 < oracle.sum() < n, oracle    # both kinds of episode in this batch
   active, alarm = [], []
   for _ in range(200):
     state = step(state, policy(state.obs, None))
-    active.append(np.asarray(state.info["override_active"])[0])
-    alarm.append(np.asarray(state.info["alarm"])[0])
-  active, alarm = np.array(active), np.array(alarm)
+    active.append(np.asarray(state.info["override_active"]))
+    alarm.append(np.asarray(state.info["alarm"]))
+  active, alarm = np.array(active), np.array(alarm)    # [steps, n]
+  np.testing.assert_array_equal(np.asarray(state.info["sim"]["det_oracle"]), oracle)   # drawn once per episode
+  assert alarm[:, ~oracle].max() == 0.0
+  alarm, active = alarm[:, np.argmax(oracle)], active[:, np.argmax(oracle)]
   t = (np.arange(200) + 1) * env.dt
   assert alarm[(t > 13.2) & (t < 17.8)].min() == 1.0 and alarm[t < 12.9].max() == 0.0 and alarm[t > 18.2].max() == 0
   # The override of a step follows the alarm at the start of that step.
   np.testing.assert_array_equal(active[1:], alarm[:-1])
-  speed = np.linalg.norm(np.asarray(state.info["sim"]["truth"].vel)[0, :2])
+  speed = np.linalg.norm(np.asarray(state.info["sim"]["truth"].vel)[np.argmax(oracle), :2])
   assert speed > 3.0   # back under the autopilot, cruising again after the alarm cleared

@@ -26,7 +26,10 @@ def tiny(env=None, **kw):
   base = dict(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=256, phase2_steps=0, hidden=(32, 32),
               sg=TINY_PPO, aa=TINY_PPO, checkpoint_every_s=0.0, seed=3)
   base.update(kw)
-  return config.TrainConfig(**base).with_env(**{"worlds": ("suburban_residential",), **(env or {})}).validate()
+  # the oracle detector in phase 2 (the default 'mixed' also runs the residual one: a longer compile; its env is
+  # tested in test_env_detection)
+  return config.TrainConfig(**base).with_env(**{"worlds": ("suburban_residential",), "detector": "oracle",
+                                                **(env or {})}).validate()
 
 
 def test_gae_bootstraps_truncation_not_termination():
@@ -381,8 +384,8 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="override",
                     nan_fallback=False, ekf_records=False, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
-                    detector="oracle", detector_delay=0.5, reconstruction=True, nan_fallback=False,
-                    ekf_records=False, ekf_kernel="auto"),
+                    detector="mixed", detector_delay=0.5, reconstruction=True, nan_fallback=False,
+                    ekf_records=True, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
                     detector="residual", detector_delay=0.5, reconstruction=True))),
       "pc, residual, old flat config.json": (config.from_dict(OLD_FLAT_CONFIG), (
@@ -399,8 +402,8 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
                     control_mode="override", nan_fallback=False, ekf_records=False),
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
-                    control_mode="reactive", detector="oracle", detector_delay=0.5, reconstruction=False,
-                    nan_fallback=False, ekf_records=False),
+                    control_mode="reactive", detector="mixed", detector_delay=0.5, reconstruction=False,
+                    nan_fallback=False, ekf_records=True),
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True,
                     control_mode="reactive", detector="residual", detector_delay=0.5, reconstruction=False))),
   }

@@ -12,7 +12,7 @@ from envs import observation as obs_lib
 from envs import worlds as worlds_lib
 from envs.worlds import DEFAULT_WORLDS
 from specguard_jax import checks
-from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
+from specguard_jax.types import REWARDS, RESIDUAL_DETECTORS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
 NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
@@ -70,7 +70,7 @@ class PPOConfig:
     return self
 
 
-TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
+TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="mixed",
                       detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto",
                       obs_layout="recovery", override_phases="all")
 """TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
@@ -93,7 +93,7 @@ def env_config(cfg: "TrainConfig", phase) -> EnvConfig:
     return dataclasses.replace(env, control_mode="override", detector="none", detector_delay=0.0, reconstruction=False,
                                ekf_records=False)
   if phase == 2:
-    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector == "residual")
+    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector in RESIDUAL_DETECTORS)
   if phase == "eval":
     return dataclasses.replace(env, control_mode=mode, detector=cfg.eval_detector, **_EVAL_ENV_DEFAULTS)
   raise ValueError(f"unknown phase {phase!r}; choose 1, 2 or 'eval'")
@@ -109,8 +109,9 @@ class TrainConfig:
   setpoint is a correction added to the mission navigator's setpoint, computed on the reconstructed state under
   attack; False = it replaces it: the paper's absolute moves, far slower to learn), env.reconstruction (state
   reconstruction in the loop in phase 2; False = the ablation), env.detector (the training detector of phase 2:
-  'oracle', the true attack window after env.detector_delay s with the true diagnosis, the issue's training
-  detector, or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
+  'mixed', the default, each episode the oracle's with probability env.oracle_share else the residual detector's, so
+  the policy meets the deployed detector's delays and misdiagnoses; 'oracle', the true attack window after
+  env.detector_delay s with the true diagnosis; or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
   env.control_mode comes from `variant` per phase.  eval_detector: the held-out evaluation's detector (deployment).
 
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'

@@ -36,6 +36,7 @@ from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
+from specguard_jax.types import RESIDUAL_DETECTORS
 
 STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
              "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
@@ -58,9 +59,9 @@ class Carry:
 def trainer_env_options(detector: str = "none") -> dict:
   """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"; the
   trainer's own come from config.env_config): no NaN fallback (its AutoReset replaces a NaN-terminated env's state,
-  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual',
-  EnvConfig.ekf_records)."""
-  return dict(nan_fallback=False, ekf_records=detector == "residual")
+  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual' or
+  'mixed', EnvConfig.ekf_records)."""
+  return dict(nan_fallback=False, ekf_records=detector in RESIDUAL_DETECTORS)
 
 
 def _make(vehicle: str, config):
