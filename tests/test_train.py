@@ -32,6 +32,19 @@ def tiny(env=None, **kw):
                                                 **(env or {})}).validate()
 
 
+def test_convergence_rule_is_relative_to_the_returns():
+  """runner.converged (Algorithm 2's stop): both agents' mean returns move less than eps of their size per iteration
+  between the last two windows; a drifting or too short history does not stop."""
+  flat = [[500.0 + 0.1 * (i % 2), -500.0] for i in range(40)]
+  assert runner.converged(flat, 20, 1e-3)
+  assert not runner.converged(flat[:39], 20, 1e-3)             # fewer than two windows
+  assert not runner.converged(flat, 20, 0.0)                   # off
+  rising = [[500.0 + 2.0 * i, -500.0] for i in range(40)]      # +2 / iteration = 4e-3 of 500
+  assert not runner.converged(rising, 20, 1e-3) and runner.converged(rising, 20, 5e-3)
+  small = [[0.01 * i, 0.0] for i in range(40)]                  # near zero: measured against 1
+  assert runner.converged(small, 20, 1e-3) is False and runner.converged(small, 20, 2e-2)
+
+
 def test_gae_bootstraps_truncation_not_termination():
   r = jnp.array([[1.0], [1.0], [1.0]])
   v = jnp.array([[0.5], [0.5], [0.5]])

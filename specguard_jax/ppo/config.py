@@ -118,8 +118,9 @@ class TrainConfig:
   (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
   better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
-  converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
-  iteration, averaged over the window of iterations).  completion_bonus: reward on mission completion in units of the
+  converge_window: stop phase 2 early (paper Algorithm 2; on by default, the phase-2 budget is the cap) when the
+  average returns of both agents change by less than eps of their size per iteration, between the last two windows
+  of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units of the
   maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
   finishing the mission never looks worse than dawdling.
   """
@@ -144,7 +145,7 @@ class TrainConfig:
   attack_beta: float = 0.0
   attack_gamma: float = 0.0
   alternate_iters: int = 10
-  converge_eps: float = 0.0
+  converge_eps: float = 1e-3
   converge_window: int = 20
   completion_bonus: float = -1.0
   obs_clip: float = 10.0

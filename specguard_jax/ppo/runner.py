@@ -112,13 +112,15 @@ class _Progress:
 
 
 def converged(history, window: int, eps: float) -> bool:
-  """Paper Algorithm 2's stop rule: |d/dt mean return| < eps for both agents, estimated as the change between the
-  means of the last two windows of iterations divided by the window length."""
+  """Paper Algorithm 2's stop rule: the mean return of both agents changes by less than eps per iteration, relative
+  to its size: |mean(last window) - mean(window before)| / window < eps x max(|mean(window before)|, 1), for both
+  history columns (SpecGuard's and the attack agent's returns). eps <= 0: never."""
   if eps <= 0 or len(history) < 2 * window:
     return False
   h = np.asarray(history[-2 * window:], np.float64)
-  d = np.abs(np.nanmean(h[window:], 0) - np.nanmean(h[:window], 0)) / window
-  return bool(np.all(d < eps))
+  before, last = np.nanmean(h[:window], 0), np.nanmean(h[window:], 0)
+  d = np.abs(last - before) / window
+  return bool(np.all(d < eps * np.maximum(np.abs(before), 1.0)))
 
 
 def _checkpointer(run_dir):
@@ -329,7 +331,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         summary_phase[number] = last
         if number == 2 and converged(host["history"], cfg.converge_window, cfg.converge_eps):
           host["converged"] = True
-          log(f"\n[train] phase 2 converged at iteration {it_end} (|d return / d iter| < {cfg.converge_eps})")
+          log(f"\n[train] phase 2 converged at iteration {it_end} "
+              f"(|d return / d iter| < {cfg.converge_eps} x |return|)")
           break
         interrupted = stop["flag"] or (stop_after_calls is not None and calls_here >= stop_after_calls)
         # Every process must take the same decision (the save is collective): OR-ed over the processes.
