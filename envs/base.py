@@ -29,6 +29,7 @@ from flax import struct
 from mujoco import mjx
 
 from envs import missions as missions_lib
+from envs import observation as obs_lib
 from envs import worlds as worlds_lib
 from specguard_jax import assets
 from specguard_jax import attacks as attacks_lib
@@ -46,11 +47,15 @@ from specguard_jax.estimation import hooks as estimator_hooks
 from specguard_jax.estimation import model_file
 from specguard_jax.estimation import recon as recon_lib
 from specguard_jax.estimation import traces as traces_lib
-from specguard_jax.types import CONTROL_MODES, DETECTORS, RECON_MODES, REWARDS, SensorReadings, TrueState
+from specguard_jax.types import (CONTROL_MODES, DETECTORS, RECON_MODES, RESIDUAL_DETECTORS, REWARDS, SENSOR_NAMES,
+                                SensorReadings, TrueState)
 
 ASSETS = assets.ASSETS_DIR   # the shipped MJCF models and JSON (specguard_jax.assets)
-OBS_SIZE = 24
+OBS_SIZE = 24   # entries of the paper24 observation layout (envs.observation); the env's: observation_size
+PROXIMITY_STREAM = 0x0B5   # fold_in tag of the range sensors' noise key
+ORACLE_STREAM = 0x0AC     # fold_in tag of detector "mixed"'s per-episode draw
 OVERRIDE_FRAMES = ("world", "body")
+OVERRIDE_PHASES = ("cruise_loiter", "all")
 RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
 RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
 PAPER_LAG_S = 1.0   # s; least checkpoint lag of the paper-mode reconstruction (EnvConfig.recon_mode, _recon_config)
@@ -91,7 +96,7 @@ class EnvConfig:
   its world uniformly from them (training across operating environments) and `world` is ignored.  tick_dt: autopilot/physics period (s).  ticks_per_step: ticks per env step.
   max_episode_s: hard cap on an episode (s); the per-mission limit is 2 x nominal duration + 30 s, below this cap.
   stall_s: no progress (1 m closer to the target) for this long -> stall.  control_mode: 'autopilot' (action ignored)
-  or 'override' (the action is a velocity setpoint that replaces the navigator's in cruise/loiter; SpecGuard-PC) or
+  or 'override' (the action is a velocity setpoint that replaces the navigator's in the override_phases; SpecGuard-PC) or
   'reactive' (the override applies only while the detector's alarm is up; SpecGuard-RC: the recovery switch hands
   control back to the autopilot when the alarm clears).  detector: attack detector run every tick on the attacked
   readings and the EKF ('residual' or 'oracle'); its alarm/diagnosis are in info['alarm'] / info['diagnosis'].
@@ -117,7 +122,9 @@ class EnvConfig:
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
   attack: Any = None  # specguard_jax.attacks.AttackConfig: a random attack per episode; None -> no attack
   detector: str = "none"        # 'none' | 'residual' (CUSUM detector + diagnosis) | 'oracle' (true attack, delayed)
+                                # | 'mixed' (per episode: the oracle with probability oracle_share, else residual)
   detector_delay: float = 0.0   # oracle detection delay (s)
+  oracle_share: float = 0.25    # detector 'mixed': share of episodes whose alarm and diagnosis are the oracle's
   detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
   override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
@@ -167,6 +174,16 @@ class EnvConfig:
   mission_file: str = ""
   mission_max_waypoints: int = 1000
   params_file: str = ""
+  # The policy's observation (envs.observation): "paper24" the paper's x'_t and mission context from the estimate (24
+  # inputs); "recovery" adds the alarm, the diagnosed-sensor mask, the time since the alarm, the estimate's 1-sigma
+  # and a ring of `proximity_sectors` range sensors (noisy, capped at `proximity_range` m) on the true geometry.
+  obs_layout: str = "paper24"
+  # Mission phases in which the policy's setpoint applies (while control_mode lets it act): "cruise_loiter" (the
+  # waypoint legs and the loiter, as the paper's velocity override) or "all" (take-off, cruise, loiter, descent and
+  # landing too: where gyro, accelerometer and barometer attacks cause their failures).
+  override_phases: str = "cruise_loiter"
+  proximity_sectors: int = 8
+  proximity_range: float = 20.0
 
   def validate(self):
     check_env_values(self)
@@ -182,8 +199,8 @@ class EnvConfig:
       raise ValueError(f"unknown detector {self.detector!r}; choose one of {DETECTORS}")
     if self.control_mode == "reactive" and self.detector == "none":
       raise ValueError("control_mode='reactive' needs a detector ('residual' or 'oracle')")
-    if self.detector == "residual" and not self.ekf_records:
-      raise ValueError("detector='residual' reads the EKF's test ratios: it needs ekf_records=True")
+    if self.detector in RESIDUAL_DETECTORS and not self.ekf_records:
+      raise ValueError(f"detector={self.detector!r} reads the EKF's test ratios: it needs ekf_records=True")
     if self.reconstruction and self.detector == "none":
       raise ValueError("reconstruction=True needs a detector ('residual' or 'oracle') to say when and what to rebuild")
     if self.recon_mode not in RECON_MODES:
@@ -201,6 +218,18 @@ class EnvConfig:
                        "reconstruction=True")
     if self.tick_dt <= 0 or self.ticks_per_step < 1:
       raise ValueError("tick_dt must be > 0 and ticks_per_step >= 1")
+    if self.override_phases not in OVERRIDE_PHASES:
+      raise ValueError(f"unknown override_phases {self.override_phases!r}; choose one of {', '.join(OVERRIDE_PHASES)}")
+    if self.obs_layout not in obs_lib.LAYOUTS:
+      raise ValueError(f"unknown obs_layout {self.obs_layout!r}; choose one of {', '.join(obs_lib.LAYOUTS)}")
+
+
+def override_in_phase(override_phases: str, nav_phase):
+  """Whether the policy's setpoint may act in navigator phase nav_phase (EnvConfig.override_phases): "all" every
+  flight phase (not DONE), "cruise_loiter" CRUISE and LOITER. Bool array of nav_phase's shape."""
+  if override_phases == "all":
+    return nav_phase != nav_lib.DONE
+  return (nav_phase == nav_lib.CRUISE) | (nav_phase == nav_lib.LOITER)
 
 
 def tree_where(cond, a, b):
@@ -222,8 +251,11 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   for name in ("mission_file", "params_file"):
     if not isinstance(getattr(cfg, name), str):
       raise ValueError(f"{prefix}{name} must be a file path (a string), got {getattr(cfg, name)!r}")
+  checks.integer(f"{prefix}proximity_sectors", cfg.proximity_sectors, 1, 64)
+  checks.number(f"{prefix}proximity_range", cfg.proximity_range, 0, 1e3, lo_open=True)
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
+  checks.number(f"{prefix}oracle_share", cfg.oracle_share, 0, 1)
   for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
                "ekf_records", "unroll_ticks"):
     checks.one_of(prefix + name, getattr(cfg, name), (True, False))
@@ -340,8 +372,9 @@ class RAVEnv(Env):
     cfg = recon_lib.ReconConfig(n_controls=n_u, ekf=self.ekf_cfg, mode=self.config.recon_mode)
     if cfg.mode != "paper":
       return cfg
-    delay = (self.config.detector_delay if self.config.detector == "oracle"
-             else max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s))
+    residual = max(self.det_cfg.diag_window_s, self.det_cfg.xcheck_window_s)
+    delay = {"oracle": self.config.detector_delay, "residual": residual,
+             "mixed": max(residual, self.config.detector_delay)}[self.config.detector]
     lag = int(np.ceil(max(PAPER_LAG_S, delay) / self.config.tick_dt - 1e-6))
     calib = int(round(cfg.paper_calib_s / self.config.tick_dt))   # entries before the checkpoint, for calibration
     cfg = dataclasses.replace(cfg, lag=lag, window=max(cfg.window, lag + 1 + calib))
@@ -365,7 +398,7 @@ class RAVEnv(Env):
   # ---------------------------------------------------------------- Env API
   @property
   def observation_size(self) -> int:
-    return OBS_SIZE
+    return obs_lib.size(self.config.obs_layout, self.config.proximity_sectors)
 
   @property
   def action_size(self) -> int:
@@ -424,6 +457,8 @@ class RAVEnv(Env):
     }
     if self.config.detector != "none":
       sim["det"] = detection_lib.detector_init(self.det_cfg)
+    if self.config.detector == "mixed":   # this episode's detector: the oracle (True) or the residual one
+      sim["det_oracle"] = jax.random.uniform(jax.random.fold_in(k_run, ORACLE_STREAM)) < self.config.oracle_share
     if self.config.reconstruction:
       sim["recon"] = recon_lib.recon_init(self.recon_cfg, ekf)
       sim["x_rec"] = recon_lib.input_vector(ekf, readings)
@@ -449,7 +484,7 @@ class RAVEnv(Env):
     info["spec_monitor"] = monitor
     info["spec_robustness"] = spec_rob
     info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary")[1]
-    obs = self._observation(world, mission, sim)
+    obs = self._observation(world, mission, sim, key=k_run)
     metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
     return State(pipeline_state=phys, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
                  info=info)
@@ -528,7 +563,7 @@ class RAVEnv(Env):
     if self.config.nan_fallback:
       phys = tree_where(finite, phys, state.pipeline_state)
       sim = tree_where(finite, sim, sim0)
-    obs = self._observation(world, mission, sim, obstacle=(d_est, g_est))
+    obs = self._observation(world, mission, sim, obstacle=(d_est, g_est), key=k_ticks)
     obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
     with jax.named_scope("stl_reward"):
@@ -587,10 +622,14 @@ class RAVEnv(Env):
     with jax.named_scope("ekf"):
       ekf = self._ekf_update(sim["ekf"], rd_ekf, gps_due)
     with jax.named_scope("detector"):
-      if cfg.detector == "residual":   # actuation of the previous tick produced these readings
+      if cfg.detector in RESIDUAL_DETECTORS:   # actuation of the previous tick produced these readings
         hold = sim["recon"].suspect if cfg.reconstruction else False  # compromised sensor still off the reconstruction
-        sim = dict(sim, det=detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf,
-                                                          self._actuation(sim), cfg.tick_dt, hold))
+        det = detection_lib.detector_update(self.det_cfg, sim["det"], readings, ekf, self._actuation(sim),
+                                            cfg.tick_dt, hold)
+        if cfg.detector == "mixed":   # an oracle episode's state is the oracle's throughout
+          det = tree_where(sim["det_oracle"], detection_lib.oracle_update(sim["det"], attack, sim["nav"].time,
+                                                                          cfg.tick_dt, cfg.detector_delay), det)
+        sim = dict(sim, det=det)
       elif cfg.detector == "oracle":
         sim = dict(sim, det=detection_lib.oracle_update(sim["det"], attack, sim["nav"].time, cfg.tick_dt,
                                                         cfg.detector_delay))
@@ -599,7 +638,10 @@ class RAVEnv(Env):
       u_prev = traces_lib.vehicle_controls(self.vehicle, sim)
       handback = sim["recon"].active & ~(sim["det"].alarm > 0)
       # A GPS blamed by the residual detector: the shadow restarts from its GPS-free dead reckoning.
-      anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector == "residual" else None)
+      anchor = (jnp.concatenate([sim["det"].dr[0], sim["det"].aid_vel]) if cfg.detector in RESIDUAL_DETECTORS
+                else None)
+      if cfg.detector == "mixed":   # the oracle's episodes have no dead reckoning (recon_tick skips a NaN anchor)
+        anchor = jnp.where(sim["det_oracle"], jnp.nan, anchor)
       with jax.named_scope("reconstruction"):
         rec, x_rec, est, rd_ctrl = recon_lib.recon_tick(self.recon_cfg, self.dyn_params, sim["recon"], ekf, readings,
                                                        u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
@@ -617,7 +659,7 @@ class RAVEnv(Env):
       d_est, g_est = worlds_lib.obstacle_sdf_and_grad(world, self._query_pos(est.pos))
       vel_nav = fallback_lib.apply(self.fallback_cfg, vel_nav, fallback_lib.position_sigma(sim["recon"]), d_est,
                                    g_est, sim["det"].alarm > 0, est.pos, world.rally_points)
-    use_override = override & ((nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER))
+    use_override = override & override_in_phase(cfg.override_phases, nav.phase)
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
@@ -710,12 +752,14 @@ class RAVEnv(Env):
     """[3] the position the observation is built from: the EKF's, or the reconstructed one (phase 2), m."""
     return sim["x_rec"][0:3] if self.config.reconstruction else sim["ekf"].pos
 
-  def _observation(self, world, mission, sim, obstacle=None) -> jax.Array:
-    """Policy input [24] from the ESTIMATED state (so attacks reach it): the paper's x'_t (position relative to the
-    target waypoint, velocity, acceleration, Euler angles) + mission context: direction of the next leg [3],
-    unit direction to the nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude,
-    horizontal speed, waypoint slack (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated
-    position if already at hand (worlds.obstacle_queries), else computed here."""
+  def _observation(self, world, mission, sim, obstacle=None, key=None) -> jax.Array:
+    """Policy input [observation_size] in the layout `config.obs_layout` (envs.observation). Its first 24 entries
+    from the ESTIMATED state (so attacks reach them): the paper's x'_t (position relative to the target waypoint,
+    velocity, acceleration, Euler angles) + mission context: direction of the next leg [3], unit direction to the
+    nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude, horizontal speed, waypoint slack
+    (s). obstacle: (distance [], gradient [3]) of the obstacles' SDF at the estimated position if already at hand
+    (worlds.obstacle_queries), else computed here. key: this step's PRNG key (the range sensors' noise, drawn from
+    a key folded out of it so the other random streams do not change with the layout)."""
     ekf, nav, readings = sim["ekf"], sim["nav"], sim["readings"]
     pos = self._estimated_position(sim)
     if self.config.reconstruction:   # x'_t as reconstructed (equals the EKF's while the alarm is down)
@@ -737,7 +781,26 @@ class RAVEnv(Env):
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
                    pos[2] - self._ground_offset(), math3d.norm(vel[:2]),
                    jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
+    if self.config.obs_layout == "recovery":
+      obs = jnp.concatenate([obs, self._recovery_context(world, sim, key)])
     return obs.astype(jnp.float32)
+
+  def _recovery_context(self, world, sim, key) -> jax.Array:
+    """The `recovery` layout's entries after the first 24 (envs.observation.recovery_context)."""
+    cfg = self.config
+    if "det" in sim:
+      det = sim["det"]
+      alarm, diagnosed, since = det.alarm, det.mask, det.time_since_alarm
+    else:
+      alarm, diagnosed, since = jnp.zeros(()), jnp.zeros(len(SENSOR_NAMES)), jnp.zeros(())
+    std = recon_lib.recon_std(sim["recon"]) if cfg.reconstruction else ekf_lib.std_groups(sim["ekf"].P)
+    truth = sim["truth"]
+    ranges = worlds_lib.proximity_ranges(world, self._query_pos(truth.pos), math3d.quat_to_euler(truth.quat)[2],
+                                         cfg.proximity_sectors, cfg.proximity_range)
+    key = jax.random.PRNGKey(0) if key is None else key
+    ranges = obs_lib.noisy_ranges(ranges, jax.random.fold_in(key, PROXIMITY_STREAM), cfg.proximity_range,
+                                  obs_lib.RangeSensorConfig())
+    return obs_lib.recovery_context(alarm, diagnosed, since, std, ranges)
 
   def _override_velocity(self, action, sim):
     """Action [3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""

@@ -119,6 +119,50 @@ def oriented_rect_inside_margin(p_xy: jnp.ndarray, centre: jnp.ndarray, half: jn
   return -sdf_box_xy(p_xy, box)
 
 
+# Horizontal ray casts (a range sensor's beam): the distance along a unit direction d [2] from p [3] to the first
+# surface; `FAR` where the beam misses. A beam starting inside a shape hits at 0. Zero direction components are
+# nudged to 1e-9 so the slab tests divide without NaN.
+def _nudge(d):
+  return jnp.where(jnp.abs(d) < 1e-9, jnp.where(d < 0, -1e-9, 1e-9), d)
+
+
+def ray_cylinder(p: jnp.ndarray, d: jnp.ndarray, cyl: jnp.ndarray) -> jnp.ndarray:
+  """Range from p [3] along the horizontal unit direction d [2] to the vertical cylinder cyl [4] (a beam at height
+  p[2] hits it only where 0 <= p[2] <= height), m; FAR on a miss."""
+  m0, m1 = p[0] - cyl[0], p[1] - cyl[1]
+  b = m0 * d[0] + m1 * d[1]
+  c = m0 * m0 + m1 * m1 - cyl[2] * cyl[2]
+  disc = b * b - c
+  t = -b - jnp.sqrt(jnp.maximum(disc, 0.0))
+  hit = (c <= 0.0) | ((disc >= 0.0) & (b < 0.0))
+  t = jnp.where(c <= 0.0, 0.0, t)
+  return jnp.where(hit & (p[2] >= 0.0) & (p[2] <= cyl[3]), t, FAR)
+
+
+def ray_box(p: jnp.ndarray, d: jnp.ndarray, box: jnp.ndarray, axes=None) -> jnp.ndarray:
+  """Range from p [3] along the horizontal unit direction d [2] to the oriented prism box [6] (beam height within
+  [0, height]), m; FAR on a miss. axes: the box's `prism_axes` [2] if at hand."""
+  c, s = (jnp.cos(box[4]), jnp.sin(box[4])) if axes is None else (axes[0], axes[1])
+  o0, o1 = _box_local_xy(p, box, (c, s))
+  d0, d1 = _nudge(c * d[0] + s * d[1]), _nudge(-s * d[0] + c * d[1])
+  ta, tb = (-box[2] - o0) / d0, (box[2] - o0) / d0
+  tc, td = (-box[3] - o1) / d1, (box[3] - o1) / d1
+  t_in = jnp.maximum(jnp.minimum(ta, tb), jnp.minimum(tc, td))
+  t_out = jnp.minimum(jnp.maximum(ta, tb), jnp.maximum(tc, td))
+  hit = (t_out >= jnp.maximum(t_in, 0.0)) & (p[2] >= 0.0) & (p[2] <= box[5])
+  return jnp.where(hit, jnp.maximum(t_in, 0.0), FAR)
+
+
+def ray_rect_exit(p_xy: jnp.ndarray, d: jnp.ndarray, rect: jnp.ndarray) -> jnp.ndarray:
+  """Range from p_xy [2] inside the axis-aligned rect [4] = (xmin, xmax, ymin, ymax) along the unit direction d [2]
+  to its edge (where the beam leaves it), m; 0 from outside."""
+  d0, d1 = _nudge(d[0]), _nudge(d[1])
+  tx = jnp.where(d0 > 0, (rect[1] - p_xy[0]) / d0, (rect[0] - p_xy[0]) / d0)
+  ty = jnp.where(d1 > 0, (rect[3] - p_xy[1]) / d1, (rect[2] - p_xy[1]) / d1)
+  inside = rect_inside_margin(p_xy, rect) >= 0.0
+  return jnp.where(inside, jnp.maximum(jnp.minimum(tx, ty), 0.0), 0.0)
+
+
 def masked_min(values: jnp.ndarray, mask: jnp.ndarray, empty: float = FAR) -> jnp.ndarray:
   """Minimum of values [N] over entries where mask [N] is true; `empty` (1e3) if none. Returns []."""
   return jnp.min(jnp.where(mask, values, empty), initial=empty)

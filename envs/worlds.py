@@ -559,6 +559,25 @@ def fence_distances(world: World, pos: jnp.ndarray):
   return margins[i], hs[i], vs[i]
 
 
+def proximity_ranges(world: World, pos: jnp.ndarray, yaw, n_sectors: int, max_range: float) -> jnp.ndarray:
+  """[n_sectors] ranges (m, capped at max_range) of a horizontal ring of range sensors at pos [3]: beam k points at
+  yaw + 2 pi k / n_sectors (k = 0 straight ahead of the body, counter-clockwise), the distance to the first obstacle,
+  keep-out fence or operating-boundary edge it meets (a beam from inside a shape or outside the boundary reads 0).
+  From the true geometry; the sensor's noise is the caller's (envs.observation)."""
+  ang = jnp.asarray(yaw, jnp.float32) + jnp.arange(n_sectors, dtype=jnp.float32) * (2.0 * jnp.pi / n_sectors)
+  dirs = jnp.stack([jnp.cos(ang), jnp.sin(ang)], -1)                                      # [n, 2]
+
+  def one(d):
+    cyl = jax.vmap(geo.ray_cylinder, (None, None, 0))(pos, d, world.cylinders)
+    box = jax.vmap(geo.ray_box, (None, None, 0, 0))(pos, d, world.boxes, world.box_axes)
+    fen = jax.vmap(geo.ray_box, (None, None, 0, 0))(pos, d, world.fences, world.fence_axes)
+    edge = jnp.where(world.boundary_on, geo.ray_rect_exit(pos[:2], d, world.boundary), geo.FAR)
+    return jnp.minimum(jnp.minimum(geo.masked_min(cyl, world.cylinder_mask), geo.masked_min(box, world.box_mask)),
+                       jnp.minimum(geo.masked_min(fen, world.fence_mask), edge))
+
+  return jnp.minimum(jax.vmap(one)(dirs), max_range)
+
+
 def world_queries(world: World, mission: Mission, pos: jnp.ndarray, target_idx, obstacle=None) -> dict:
   """Geometric monitored signals (specguard_jax.signals) at pos [3] while heading for waypoint target_idx.
 

@@ -2,7 +2,7 @@
 
 A `Controller` says how the deployment env is configured (`env_overrides`, EnvConfig fields applied on top of the
 evaluation's base config: worlds, attacks and mission sizes stay the evaluation's) and what flies it
-(`policy(params, obs [B, 24]) -> velocity setpoint [B, 3]` m/s, a hashable static argument of the jitted rollout).
+(`policy(params, obs [B, n_obs]) -> velocity setpoint [B, 3]` m/s, a hashable static argument of the jitted rollout).
 Controllers with equal `env_overrides` and `policy` share one compiled rollout.
 
 Built in:
@@ -35,6 +35,7 @@ from typing import Any, Callable
 
 import jax.numpy as jnp
 
+from envs import observation as obs_lib
 from envs.worlds import DEFAULT_WORLDS  # noqa: F401 (evaluate.py's default worlds)
 from specguard_jax import export
 from specguard_jax.ppo import config as config_lib
@@ -50,7 +51,7 @@ class Controller:
   """A controller under evaluation: how the deployment env is configured and what flies it."""
   name: str                  # report key: 'no_protection', 'specguard_rc', 'specguard_pc', 'delorean', 'ssr', ...
   env_overrides: tuple       # ((EnvConfig field, value), ...) on top of the evaluation's base env config
-  policy: Callable           # hashable: policy(params, obs [B, 24]) -> velocity setpoint [B, 3] (m/s)
+  policy: Callable           # hashable: policy(params, obs [B, n_obs]) -> velocity setpoint [B, 3] (m/s)
   params: Any = dataclasses.field(default=None, compare=False, hash=False)   # pytree for policy
   description: str = ""
 
@@ -150,7 +151,7 @@ def load_run_config(run_dir: str):
   if not os.path.isfile(path):
     raise NotAvailable(f"no training run at {run_dir} (config.json missing)")
   try:
-    return config_lib.load_config_file(path).with_env(ekf_kernel="xla").validate()
+    return config_lib.load_config_file(path, run=True).with_env(ekf_kernel="xla").validate()
   except ValueError as e:
     msg = " ".join(str(e).split())
     raise NotAvailable(msg if path in msg else f"{path}: {msg}") from None
@@ -163,7 +164,8 @@ def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   rec = ev.reconstruction if reconstruction is None else reconstruction
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
           ("override_residual", bool(ev.override_residual)), ("detector", ev.detector),
-          ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)))
+          ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)),
+          ("override_phases", ev.override_phases))
 
 
 def load_run_policy(run_dir: str):
@@ -194,12 +196,33 @@ def run_for(ctx: BuildContext, variant: str) -> str:
   return ctx.run_dir
 
 
+def obs_overrides(run_dir: str) -> tuple:
+  """EnvConfig overrides that build the observation a run's policy was trained on: its policy_config.json's layout
+  (envs.observation), the 24-input paper layout where none is recorded. NotAvailable (one line) for a layout this
+  version does not know or whose size differs from what the env would build."""
+  try:
+    desc = export.load_obs_layout(run_dir)
+  except ValueError as e:
+    raise NotAvailable(str(e)) from None
+  if desc is None:
+    return (("obs_layout", "paper24"),)
+  name, sectors = desc["name"], obs_lib.sectors_of(desc)
+  if name not in obs_lib.LAYOUTS or obs_lib.describe(name, max(sectors, 1))["fields"] != desc["fields"]:
+    raise NotAvailable(f"{run_dir}: the policy was trained on observation layout {name!r} version "
+                       f"{desc['version']} ({sum(n for _, n in desc['fields'])} inputs), which this version does not "
+                       f"build (layouts: {', '.join(obs_lib.LAYOUTS)}, version {obs_lib.LAYOUT_VERSION})")
+  return (("obs_layout", name),) + ((("proximity_sectors", sectors),) if sectors else ())
+
+
 def specguard_from_run(name: str, run_dir: str, *, reconstruction: bool | None = None,
                        description: str = "") -> Controller:
-  """Controller flying a train.py run's policy in its deployment env."""
+  """Controller flying a train.py run's policy in its deployment env (with the observation layout it was trained
+  on)."""
   fn, p, cfg = load_run_policy(run_dir)
-  return Controller(name, run_overrides(cfg, reconstruction=reconstruction), fn, p,
-                    description or f"SpecGuard-{cfg.variant.upper()} from {run_dir}")
+  overrides = run_overrides(cfg, reconstruction=reconstruction) + obs_overrides(run_dir)
+  if dict(overrides)["obs_layout"] == "recovery":
+    overrides += (("proximity_range", float(cfg.env.proximity_range)),)
+  return Controller(name, overrides, fn, p, description or f"SpecGuard-{cfg.variant.upper()} from {run_dir}")
 
 
 def _check_vehicle(ctx: BuildContext, run_dir: str) -> None:

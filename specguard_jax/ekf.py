@@ -229,6 +229,14 @@ def p_diag(P):
   return jnp.diagonal(P, axis1=-2, axis2=-1) if P.ndim > 2 else _diag(P)
 
 
+def std_groups(P):
+  """[..., 4] 1-sigma of an estimate from its covariance P (either layout): position (m), velocity (m/s), tilt (rad),
+  yaw (rad), each the RMS over the group's axes of P's diagonal."""
+  d = p_diag(P)
+  g = lambda sl: jnp.sqrt(jnp.mean(d[..., sl], axis=-1))  # noqa: E731
+  return jnp.stack([g(POS), g(VEL), g(slice(6, 8)), g(slice(8, 9))], axis=-1)
+
+
 def add_to_diag(P, d):
   """P + diag(d), d [15] (one vehicle's P in either layout; elementwise)."""
   if p_layout(P) == "packed":

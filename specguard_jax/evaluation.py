@@ -44,6 +44,8 @@ j draw where the sensors agree, since only the timing options differ):
   ok_since [n] s         first step of the compliant run at the episode's end (BIG when its last step was not
                          compliant)
   override_s [n] s       time the recovery policy's override was active
+  action_sum, action_max [n] m/s  sum and maximum over the steps the override was active of the size (norm) of the
+                         policy's setpoint: the policy's effect (a residual policy doing nothing reads 0)
   min_obstacle [n] m     closest approach to an obstacle
   redteam_sensor [n] int  (only with an attacker) the red-team agent's target (index into SENSOR_NAMES; -1 when
                          it never attacked or the setting is not the red-team one); its onset and end are in onset
@@ -244,7 +246,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   big = jnp.full((b,), BIG, jnp.float32)
   hold_steps = max(1, int(round(metrics.RECOVERY_HOLD_S / env.dt)))
   rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
-          "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32)}
+          "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32),
+          "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32)}
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
   if attacker is not None:
     rec0["adv"] = attacker.init(b)
@@ -296,6 +299,9 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
     rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
+    size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action, axis=-1), 0.0)
+    rec["action_sum"] = rec["action_sum"] + size
+    rec["action_max"] = jnp.maximum(rec["action_max"], size)
     new = tree_where(s.done > 0, s, nxt)
     if "traj" in rec:
       rec["traj"] = rec["traj"].at[t + 1].set(traj_row(new))
@@ -323,6 +329,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
          "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "bad_t": rec["bad_t"],
          "rec_t": rec["rec_t"], "ok_since": rec["ok_since"], "override_s": rec["override_s"],
+         "action_sum": rec["action_sum"], "action_max": rec["action_max"],
          "waypoints": mission.waypoints, "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind,
          "hazard_t": hazard_t, **extra}
   return out, rec.get("traj"), t

@@ -9,7 +9,8 @@ The deployed function is obs [B, n_obs] float32 ->
 onnx.helper, opset 17, ir_version 8, dynamic batch dim 'B') and refuses to write it unless onnxruntime matches the
 reference (|diff| <= 1e-5 + 1e-5 * max|output|, same argmax up to float ties). A run directory holds
 `policy.msgpack` ({'params', 'normalizer': {'mean', 'std'}}, flax.serialization) and `policy_config.json`
-({'kind', 'n', 'hidden', 'activation', 'speeds', 'clip', 'n_obs'}); the trainer calls save_policy then export_onnx.
+({'kind', 'n', 'hidden', 'activation', 'speeds', 'clip', 'n_obs'} and the observation layout 'obs_layout', absent in
+policies saved before layouts were recorded); the trainer calls save_policy then export_onnx.
 """
 
 from __future__ import annotations
@@ -99,6 +100,22 @@ def _layers(policy: Policy, params) -> list[tuple[np.ndarray, np.ndarray]]:
   return layers
 
 
+def _obs_layout(layout, n_obs: int) -> dict:
+  """A policy_config.json 'obs_layout' ({'name' str, 'version' int, 'fields': [[name, size], ...]}, envs.observation
+  .describe) checked: well formed, and its sizes add up to the policy's n_obs."""
+  ok = (isinstance(layout, dict) and isinstance(layout.get("name"), str) and isinstance(layout.get("version"), int)
+        and isinstance(layout.get("fields"), list)
+        and all(isinstance(f, (list, tuple)) and len(f) == 2 and isinstance(f[0], str) and isinstance(f[1], int)
+                and f[1] > 0 for f in layout["fields"]))
+  if not ok:
+    raise ValueError(f"obs_layout must be {{'name': str, 'version': int, 'fields': [[name, size], ...]}}, "
+                     f"got {layout!r}"[:300])
+  total = sum(f[1] for f in layout["fields"])
+  if total != n_obs:
+    raise ValueError(f"obs_layout {layout['name']!r} has {total} inputs, the policy takes {n_obs}")
+  return {"name": layout["name"], "version": layout["version"], "fields": [[f[0], f[1]] for f in layout["fields"]]}
+
+
 def n_obs_of(params) -> int:
   """Observation size the policy params expect (rows of the first kernel)."""
   return int(np.shape(params["net"]["dense_0"]["kernel"])[0])
@@ -138,8 +155,11 @@ def jax_policy_fn(policy: Policy, params, normalizer, speeds, clip: float | None
 # Run directory
 
 
-def save_policy(run_dir: str, policy: Policy, params, normalizer, speeds, clip: float | None = 10.0) -> None:
-  """Write run_dir/policy.msgpack and run_dir/policy_config.json (validated first; the directory is created)."""
+def save_policy(run_dir: str, policy: Policy, params, normalizer, speeds, clip: float | None = 10.0,
+                obs_layout: dict | None = None) -> None:
+  """Write run_dir/policy.msgpack and run_dir/policy_config.json (validated first; the directory is created).
+  obs_layout: the observation layout the policy was trained on (envs.observation.describe), recorded so that
+  evaluate.py builds the same observation; None: not recorded (read back as the 24-input paper layout)."""
   mean, std = _normalizer_arrays(normalizer)
   layers = _layers(policy, params)
   speeds, clip = _speeds(speeds), _clip(clip)
@@ -152,6 +172,8 @@ def save_policy(run_dir: str, policy: Policy, params, normalizer, speeds, clip: 
   cfg = {"kind": policy.kind, "n": int(policy.n), "hidden": [int(h) for h in policy.hidden],
          "activation": policy.activation, "speeds": [float(s) for s in speeds], "clip": clip,
          "n_obs": int(mean.shape[0])}
+  if obs_layout is not None:
+    cfg["obs_layout"] = _obs_layout(obs_layout, int(mean.shape[0]))
   os.makedirs(run_dir, exist_ok=True)
   _atomic_write(os.path.join(run_dir, POLICY_FILE), blob)
   _atomic_write(os.path.join(run_dir, CONFIG_FILE), (json.dumps(cfg, indent=1) + "\n").encode())
@@ -186,6 +208,8 @@ def load_policy(run_dir: str):
     policy = Policy(kind=cfg["kind"], n=int(cfg["n"]), hidden=tuple(int(h) for h in cfg["hidden"]),
                     activation=cfg["activation"])
     speeds, clip, n_obs = _speeds(cfg["speeds"]), _clip(cfg["clip"]), int(cfg["n_obs"])
+    if "obs_layout" in cfg:
+      _obs_layout(cfg["obs_layout"], n_obs)
   except (TypeError, ValueError) as e:
     raise ValueError(f"{cfg_path}: bad policy config ({_one_line(e)})") from None
   try:
@@ -212,6 +236,24 @@ def load_policy(run_dir: str):
   except (KeyError, TypeError, IndexError, ValueError) as e:
     raise ValueError(f"{pol_path}: weights do not fit {CONFIG_FILE} ({_one_line(e)})") from None
   return policy, out, {"mean": mean, "std": std}, speeds, clip
+
+
+def load_obs_layout(run_dir: str) -> dict | None:
+  """The observation layout a run's policy_config.json records ({'name', 'version', 'fields'}), None where it records
+  none (policies saved before layouts were recorded: the 24-input paper layout). ValueError naming the file when the
+  record is malformed or does not add up to the policy's n_obs."""
+  cfg_path = os.path.join(run_dir, CONFIG_FILE)
+  try:
+    with open(cfg_path) as f:
+      cfg = json.load(f)
+  except (OSError, ValueError) as e:
+    raise ValueError(f"{cfg_path}: cannot read policy config ({_one_line(e)})") from None
+  if not isinstance(cfg, dict) or "obs_layout" not in cfg:
+    return None
+  try:
+    return _obs_layout(cfg["obs_layout"], int(cfg.get("n_obs", -1)))
+  except (TypeError, ValueError) as e:
+    raise ValueError(f"{cfg_path}: bad obs_layout ({_one_line(e)})") from None
 
 
 def load_jax_policy(run_dir: str):

@@ -259,6 +259,13 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
     out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < np.asarray(r["onset"], float))
   else:
     out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < BIG / 2)
+  if "action_sum" in r:   # the policy's effect: its setpoint's size over the steps it was in control
+    steps = np.asarray(r["override_s"], float) / dt
+    ctl = steps > 0.5
+    out["control_rate"] = rate(ctl)
+    out["action_mean_stats"] = _stats(np.where(ctl, np.asarray(r["action_sum"], float) / np.maximum(steps, 1.0),
+                                               np.nan))
+    out["action_max_stats"] = _stats(np.where(ctl, np.asarray(r["action_max"], float), np.nan))
   out["svr"] = out["svr_rate"]["value"]
   out["svr_all"] = out["svr_all_rate"]["value"]
   out["any_violation"] = out["any_violation_rate"]["value"]

@@ -434,6 +434,7 @@ def markdown(rep) -> str:
                f"{_ci(v['rsr_rate'])} | {_f(v['md'])} | {_f(_pct(v['collision_rate']))} | "
                f"{_f(_pct(v['critical_rate']['value']))} |")
   L += paired_markdown(rep)
+  L += policy_effect_markdown(rep)
   L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
   return "\n".join(L)
 
@@ -523,6 +524,27 @@ def paired_markdown(rep, group="main") -> list:
           "exact p-value (binomial test of b against Bin(b + c, 1/2)). SVR: over the missions whose no-protection "
           "twin violated; any / critical violation: over all missions of the setting.", "",
           "| setting | pair | SVR b/c p | any violation b/c p | critical b/c p |", "|---|---|---|---|---|"] + rows
+
+
+def policy_effect_markdown(rep, group="main") -> list:
+  """Per learned controller (a policy whose setpoint is not always zero) and setting: the share of missions in which
+  it was in control, and the size of its setpoint over the steps it was (metrics.summarize's action_* stats)."""
+  rows = []
+  for c, by_setting in rep["groups"].get(group, {}).get("metrics", {}).items():
+    for s, v in by_setting.items():
+      mean, mx = v.get("action_mean_stats"), v.get("action_max_stats")
+      if not mean or (mx and mx["mean"] == 0.0):
+        continue
+      rows.append(f"| {c} | {s} | {_ci(v['control_rate'])} | {mean['mean']:.2f} [{mean['ci'][0]:.2f}, "
+                  f"{mean['ci'][1]:.2f}] | {mx['mean']:.2f} | {mx['n']} |")
+  if not rows:
+    return []
+  return ["", f"## The policy's effect ({group} group)", "",
+          "In control % = missions in which the policy's setpoint reached the vehicle at least one step; setpoint size "
+          "= the norm of its velocity setpoint (m/s; for a residual policy, the correction) averaged over the steps it "
+          "was in control, per mission, then over missions [95 % interval]; max = the mean over missions of the "
+          "largest. The paired tests above say whether it changed the outcome.", "",
+          "| controller | setting | in control % | setpoint size m/s | max m/s | n |", "|---|---|---|---|---|---|"] + rows
 
 
 # ------------------------------------------------------------------------------------------------- figures

@@ -100,7 +100,7 @@ def test_a_compiled_training_iteration_carries_the_stage_scopes():
                            num_devices=1).with_env(worlds=("suburban_residential",)).validate()
   ph = iteration.make_phase(cfg, 1, distributed.make_mesh(1))
   k = jax.random.PRNGKey(0)
-  carry = jax.eval_shape(ph.init, k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS))
+  carry = jax.eval_shape(ph.init, k, ph.sg.init(k, cfg.n_obs), ph.aa.init(k, attacker.N_OBS))
   text = jax.jit(ph.run.__wrapped__).lower(carry).compile().as_text()
   stages = {gpu_profile.stage_of(v) for v in gpu_profile.op_names(text).values()}
   want = {"policy", "env_step", "sensors", "ekf", "navigator", "autopilot", "physics", "stl_reward", "autoreset",

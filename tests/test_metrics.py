@@ -20,6 +20,9 @@ def recs(n, **kw):
        "onset": np.full(n, 30.0), "attack_end": np.full(n, 60.0), "first_alarm": np.full(n, M.BIG),
        "det_t": np.full(n, M.BIG), "bad_t": np.full(n, M.BIG), "rec_t": np.full(n, M.BIG),
        "ok_since": np.full(n, 0.1)}
+  for k in ("override_s", "action_sum", "action_max"):
+    if k in kw:
+      r[k] = np.zeros(n)
   for k, v in kw.items():
     r[k] = np.asarray(v, r[k].dtype).reshape(r[k].shape) if np.ndim(v) else np.full(r[k].shape, v, r[k].dtype)
   return r
@@ -169,6 +172,19 @@ def test_paired_tests_on_constructed_controllers():
   a["mission"], b["mission"] = np.arange(12), np.arange(12)[::-1]
   with pytest.raises(ValueError):
     M.paired(a, b, twin, critical=CRIT)
+
+
+def test_policy_effect_over_the_steps_in_control():
+  """The setpoint's size is averaged over the steps the policy was in control, per mission; missions it never
+  controlled count in the in-control share only; a zero residual (DeLorean's) reads 0."""
+  r = recs(4, override_s=[0.0, 1.0, 2.0, 0.0], action_sum=[0.0, 20.0, 10.0, 0.0], action_max=[0.0, 3.0, 0.5, 0.0])
+  s = summ(r)
+  assert s["control_rate"]["k"] == 2 and s["control_rate"]["n"] == 4
+  assert s["action_mean_stats"]["mean"] == pytest.approx((20.0 / 10 + 10.0 / 20) / 2)    # 10 and 20 steps of 0.1 s
+  assert s["action_max_stats"]["mean"] == pytest.approx(1.75) and s["action_max_stats"]["n"] == 2
+  z = summ(recs(2, override_s=[1.0, 1.0], action_sum=0.0, action_max=0.0))
+  assert z["action_mean_stats"]["mean"] == 0.0
+  assert "action_mean_stats" not in summ(recs(2))     # records of a rollout without the policy's effect
 
 
 def test_confidence_intervals_sane():

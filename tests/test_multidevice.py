@@ -53,7 +53,7 @@ COMMON = textwrap.dedent("""
     mesh, target = distributed.make_mesh(n if traced is None else traced), distributed.make_mesh(n)
     ph = iteration.make_phase(cfg, 2, mesh)
     k = jax.random.PRNGKey(0)
-    sg, aa, k = distributed.replicate((ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS), k), mesh)
+    sg, aa, k = distributed.replicate((ph.sg.init(k, cfg.n_obs), ph.aa.init(k, attacker.N_OBS), k), mesh)
     abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=jax.sharding.NamedSharding(
         target, x.sharding.spec)), runner.abstract_carry(ph, k, sg, aa))
     mgr = runner._checkpointer(f"{out}/{run}")
@@ -97,7 +97,7 @@ FOUR = COMMON + textwrap.dedent("""
 ONE = COMMON + textwrap.dedent("""
   assert len(jax.devices()) == 4, jax.devices()
   c1 = train("d1", cfg, 1, export=False)
-  init = iteration.make_agents(cfg)[0].init(jax.random.split(jax.random.PRNGKey(cfg.seed), 3)[0], 24).params
+  init = iteration.make_agents(cfg)[0].init(jax.random.split(jax.random.PRNGKey(cfg.seed), 3)[0], cfg.n_obs).params
   res["max_param_change"] = max(float(np.max(np.abs(np.asarray(x) - np.asarray(y)))) for x, y in zip(
       jax.tree.leaves(c1.sg.params), jax.tree.leaves(init)))
   train("a1", cfg2, 1, export=False)           # also the reference of the 2-process run

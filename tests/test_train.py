@@ -26,7 +26,23 @@ def tiny(env=None, **kw):
   base = dict(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=256, phase2_steps=0, hidden=(32, 32),
               sg=TINY_PPO, aa=TINY_PPO, checkpoint_every_s=0.0, seed=3)
   base.update(kw)
-  return config.TrainConfig(**base).with_env(**{"worlds": ("suburban_residential",), **(env or {})}).validate()
+  # the oracle detector in phase 2 (the default 'mixed' also runs the residual one: a longer compile; its env is
+  # tested in test_env_detection)
+  return config.TrainConfig(**base).with_env(**{"worlds": ("suburban_residential",), "detector": "oracle",
+                                                **(env or {})}).validate()
+
+
+def test_convergence_rule_is_relative_to_the_returns():
+  """runner.converged (Algorithm 2's stop): both agents' mean returns move less than eps of their size per iteration
+  between the last two windows; a drifting or too short history does not stop."""
+  flat = [[500.0 + 0.1 * (i % 2), -500.0] for i in range(40)]
+  assert runner.converged(flat, 20, 1e-3)
+  assert not runner.converged(flat[:39], 20, 1e-3)             # fewer than two windows
+  assert not runner.converged(flat, 20, 0.0)                   # off
+  rising = [[500.0 + 2.0 * i, -500.0] for i in range(40)]      # +2 / iteration = 4e-3 of 500
+  assert not runner.converged(rising, 20, 1e-3) and runner.converged(rising, 20, 5e-3)
+  small = [[0.01 * i, 0.0] for i in range(40)]                  # near zero: measured against 1
+  assert runner.converged(small, 20, 1e-3) is False and runner.converged(small, 20, 2e-2)
 
 
 def test_gae_bootstraps_truncation_not_termination():
@@ -224,7 +240,7 @@ def test_carry_types_are_stable_so_calls_never_recompile(phase):
   cfg = tiny(phase2_steps=256)
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
-  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   out = jax.eval_shape(lambda c: ph.run(c)[0], c)
   a, b = jax.tree.leaves(c), jax.tree.leaves(out)
   assert jax.tree.structure(c) == jax.tree.structure(out)
@@ -245,7 +261,7 @@ def _dot_precisions(cfg, phase, precision=True):
   dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
-  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   txt = ph.run.lower(c).as_text(debug_info=True)
   locs = dict(re.findall(r"^(#loc\d+) = (.*)$", txt, re.M))
 
@@ -370,15 +386,19 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
   """config.env_config builds, for the default run and two others, exactly the EnvConfigs the trainer built when
   TrainConfig mirrored the env fields (written out here): phase 1, phase 2 (training detector) and the held-out
   evaluation's (eval_detector, EnvConfig's defaults for the speed options)."""
-  from envs.base import EnvConfig
+  from envs import base
   from specguard_jax import controllers
+
+  def EnvConfig(**kw):   # every run config here has the trainer's observation layout (TRAIN_ENV)
+    return base.EnvConfig(**{"obs_layout": "recovery", "override_phases": "all", **kw})
+
   expected = {
       "default": (config.TrainConfig(), (
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="override",
                     nan_fallback=False, ekf_records=False, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
-                    detector="oracle", detector_delay=0.5, reconstruction=True, nan_fallback=False,
-                    ekf_records=False, ekf_kernel="auto"),
+                    detector="mixed", detector_delay=0.5, reconstruction=True, nan_fallback=False,
+                    ekf_records=True, ekf_kernel="auto"),
           EnvConfig(worlds=W4, override_frame="body", override_residual=True, control_mode="reactive",
                     detector="residual", detector_delay=0.5, reconstruction=True))),
       "pc, residual, old flat config.json": (config.from_dict(OLD_FLAT_CONFIG), (
@@ -395,8 +415,8 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
                     control_mode="override", nan_fallback=False, ekf_records=False),
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True, ekf_kernel="lanes",
-                    control_mode="reactive", detector="oracle", detector_delay=0.5, reconstruction=False,
-                    nan_fallback=False, ekf_records=False),
+                    control_mode="reactive", detector="mixed", detector_delay=0.5, reconstruction=False,
+                    nan_fallback=False, ekf_records=True),
           EnvConfig(worlds=W4, reward="survival", override_frame="body", override_residual=True,
                     control_mode="reactive", detector="residual", detector_delay=0.5, reconstruction=False))),
   }
@@ -405,7 +425,7 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
     assert got == want, name
   assert controllers.run_overrides(config.TrainConfig()) == (
       ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
-      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True))
+      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"))
   cfg = tiny(phase2_steps=256)   # the envs the trainer and the held-out evaluation build carry these configs
   assert iteration.make_env(cfg, 1).config == config.env_config(cfg, 1)
   assert iteration.make_env(cfg, 2).env.config == config.env_config(cfg, 2)
@@ -422,8 +442,9 @@ def test_old_flat_config_json_loads_into_env_and_resumes(tmp_path):
                                         override_residual=False, reconstruction=False, detector="residual",
                                         detector_delay=1.0, unroll_ticks=True, ekf_kernel="xla")
   (tmp_path / "config.json").write_text(json.dumps(OLD_FLAT_CONFIG))
-  assert runner.load_run_config(str(tmp_path)) == cfg
-  assert controllers.load_run_config(str(tmp_path)) == cfg
+  # a run written before observation layouts and override phases existed: the 24-input layout, cruise and loiter
+  old = cfg.with_env(obs_layout="paper24", override_phases="cruise_loiter")
+  assert runner.load_run_config(str(tmp_path)) == old and controllers.load_run_config(str(tmp_path)) == old
   d = json.loads(json.dumps(cfg.to_dict()))
   assert "worlds" not in d and d["env"]["worlds"] == ["urban_park"] and d["env"]["mission"] is None
   assert config.from_dict(d) == cfg
@@ -540,7 +561,7 @@ def _final_sg(cfg, run_dir):
   mgr = runner._checkpointer(str(run_dir))
   ph = iteration.make_phase(cfg, 2)
   k = jax.random.PRNGKey(0)
-  abstract = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, 24), ph.aa.init(k, attacker.N_OBS)))
+  abstract = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
   carry = runner._restore_carry(mgr, mgr.latest_step(), abstract)
   mgr.close()
   return carry
@@ -562,7 +583,7 @@ def test_interrupted_run_resumes_bit_identical(runs):
                                                             (2, 4)]
   f1 = export.load_jax_policy(str(runs["root"] / "full"))
   f2 = export.load_jax_policy(str(runs["root"] / "part"))
-  x = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
+  x = np.random.default_rng(0).normal(size=(5, runs["cfg"].n_obs)).astype(np.float32)
   np.testing.assert_array_equal(np.asarray(f1(x)["setpoint"]), np.asarray(f2(x)["setpoint"]))
 
 
@@ -663,7 +684,9 @@ def test_tiny_train_evaluate_export_smoke(runs):
     if k[0] != "_":
       assert 0.0 <= v["svr"] <= 1.0 and v["unfinished"] == 0.0, (k, v)
   fn = export.load_jax_policy(str(run))
-  out = fn(np.zeros((2, 24), np.float32))
+  assert runs["cfg"].n_obs == 44    # the trainer's default layout, recorded with the policy
+  assert export.load_obs_layout(str(run))["name"] == "recovery"
+  out = fn(np.zeros((2, 44), np.float32))
   assert np.all(np.isfinite(np.asarray(out["setpoint"])))
 
 

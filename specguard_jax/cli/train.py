@@ -111,7 +111,9 @@ def _parser() -> _Parser:
                help="continuous velocity setpoint or the paper's 6")
   _config_flag(ap, "--no-reconstruction", key="env.reconstruction", action="store_const", const=False,
                help="ablation: no state reconstruction in phase 2")
-  _config_flag(ap, "--detector", key="env.detector", choices=TRAIN_DETECTORS, help="the training detector (phase 2)")
+  _config_flag(ap, "--detector", key="env.detector", choices=TRAIN_DETECTORS,
+               help="the training detector (phase 2; mixed, the default: per episode the oracle with probability "
+                    "env.oracle_share, else the residual detector)")
   _config_flag(ap, "--attack-sensors", key="attack_sensors", type=_csv,
                help=f"sensors the attack agent may spoof ({','.join(SENSOR_NAMES)})")
   _config_flag(ap, "--converge-eps", key="converge_eps", type=float,

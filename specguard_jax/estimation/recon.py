@@ -255,9 +255,7 @@ def recon_std(state: ReconState) -> jax.Array:
   alarm is up, else the autopilot EKF's): position (m), velocity (m/s), tilt (rad), yaw (rad); RMS over the axes of
   each group, from its covariance (fused: the shadow filter's; paper: the EKF's with the model-propagated components'
   rows replaced by `_paper_variances`)."""
-  d = ekf_lib.p_diag(state.shadow.P)
-  g = lambda sl: jnp.sqrt(jnp.mean(d[..., sl], axis=-1))
-  return jnp.stack([g(ekf_lib.POS), g(ekf_lib.VEL), g(slice(6, 8)), g(slice(8, 9))], axis=-1)
+  return ekf_lib.std_groups(state.shadow.P)
 
 
 def _gravity_ref(cfg: ReconConfig, state: ReconState, readings, f_model, dt):

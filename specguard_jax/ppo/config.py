@@ -8,10 +8,11 @@ import json
 import jax
 
 from envs.base import EnvConfig, check_env_values
+from envs import observation as obs_lib
 from envs import worlds as worlds_lib
 from envs.worlds import DEFAULT_WORLDS
 from specguard_jax import checks
-from specguard_jax.types import REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
+from specguard_jax.types import REWARDS, RESIDUAL_DETECTORS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
 MATMUL_PRECISIONS = ("default", "bf16")   # TrainConfig.matmul_precision
 NETWORK_DTYPES = ("float32", "bfloat16")  # TrainConfig.network_dtype (the keys of networks.DTYPES)
@@ -69,8 +70,9 @@ class PPOConfig:
     return self
 
 
-TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="oracle",
-                      detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto")
+TRAIN_ENV = EnvConfig(worlds=DEFAULT_WORLDS, override_frame="body", override_residual=True, detector="mixed",
+                      detector_delay=0.5, reconstruction=True, nan_fallback=False, ekf_kernel="auto",
+                      obs_layout="recovery", override_phases="all")
 """TrainConfig.env's default: the trainer's env settings (what `env_config` does not set per phase). No NaN fallback:
 the trainer's AutoReset replaces a NaN-terminated env's whole state anyway (EnvConfig.nan_fallback)."""
 
@@ -91,7 +93,7 @@ def env_config(cfg: "TrainConfig", phase) -> EnvConfig:
     return dataclasses.replace(env, control_mode="override", detector="none", detector_delay=0.0, reconstruction=False,
                                ekf_records=False)
   if phase == 2:
-    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector == "residual")
+    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector in RESIDUAL_DETECTORS)
   if phase == "eval":
     return dataclasses.replace(env, control_mode=mode, detector=cfg.eval_detector, **_EVAL_ENV_DEFAULTS)
   raise ValueError(f"unknown phase {phase!r}; choose 1, 2 or 'eval'")
@@ -107,16 +109,18 @@ class TrainConfig:
   setpoint is a correction added to the mission navigator's setpoint, computed on the reconstructed state under
   attack; False = it replaces it: the paper's absolute moves, far slower to learn), env.reconstruction (state
   reconstruction in the loop in phase 2; False = the ablation), env.detector (the training detector of phase 2:
-  'oracle', the true attack window after env.detector_delay s with the true diagnosis, the issue's training
-  detector, or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
+  'mixed', the default, each episode the oracle's with probability env.oracle_share else the residual detector's, so
+  the policy meets the deployed detector's delays and misdiagnoses; 'oracle', the true attack window after
+  env.detector_delay s with the true diagnosis; or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
   env.control_mode comes from `variant` per phase.  eval_detector: the held-out evaluation's detector (deployment).
 
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
   (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
   better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
-  converge_window: stop phase 2 early when the average returns of both agents change by less than eps (per
-  iteration, averaged over the window of iterations).  completion_bonus: reward on mission completion in units of the
+  converge_window: stop phase 2 early (paper Algorithm 2; on by default, the phase-2 budget is the cap) when the
+  average returns of both agents change by less than eps of their size per iteration, between the last two windows
+  of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units of the
   maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
   finishing the mission never looks worse than dawdling.
   """
@@ -141,7 +145,7 @@ class TrainConfig:
   attack_beta: float = 0.0
   attack_gamma: float = 0.0
   alternate_iters: int = 10
-  converge_eps: float = 0.0
+  converge_eps: float = 1e-3
   converge_window: int = 20
   completion_bonus: float = -1.0
   obs_clip: float = 10.0
@@ -160,6 +164,11 @@ class TrainConfig:
   # and tanh in bf16, halving the activations' memory traffic; f32 parameters, optimizer, losses and outputs).
   # Evaluation and the ONNX export stay float32.
   network_dtype: str = "float32"
+
+  @property
+  def n_obs(self) -> int:
+    """SpecGuard's observation size: its env's layout (envs.observation)."""
+    return obs_lib.size(self.env.obs_layout, self.env.proximity_sectors)
 
   def with_env(self, **kw) -> "TrainConfig":
     """This config with these fields of `env` replaced (e.g. cfg.with_env(worlds=("urban_park",)))."""
@@ -352,10 +361,15 @@ def nested(items: dict) -> dict:
   return d
 
 
-def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
-  """TrainConfig from a JSON file (a --config file or a run directory's config.json) through `from_dict`; every
-  problem (unreadable, not UTF-8, not JSON, nested too deeply, not an object, a bad key or value) is a one-line
-  ValueError naming the file."""
+# EnvConfig fields a run directory's config.json may lack because the run was written before they existed, with the
+# value every such run had (not today's default): a resumed or evaluated old run builds the env it was trained in.
+LEGACY_RUN_ENV = {"obs_layout": "paper24", "override_phases": "cruise_loiter"}
+
+
+def load_config_file(path: str, base: TrainConfig | None = None, *, run: bool = False) -> TrainConfig:
+  """TrainConfig from a JSON file (a --config file or, run=True, a run directory's config.json, whose missing env
+  fields of LEGACY_RUN_ENV take their legacy value) through `from_dict`; every problem (unreadable, not UTF-8, not
+  JSON, nested too deeply, not an object, a bad key or value) is a one-line ValueError naming the file."""
   try:
     with open(path, encoding="utf-8") as f:
       d = json.load(f)
@@ -365,6 +379,11 @@ def load_config_file(path: str, base: TrainConfig | None = None) -> TrainConfig:
     raise ValueError(f"cannot read config file {path}: JSON nested too deeply") from None
   if not isinstance(d, dict):
     raise ValueError(f"config file {path} must hold a JSON object, got a JSON {type(d).__name__}")
+  if run:
+    env = d.get("env") if isinstance(d.get("env"), dict) else {}
+    legacy = {k: v for k, v in LEGACY_RUN_ENV.items() if k not in env}
+    base = base or TrainConfig()
+    base = dataclasses.replace(base, env=dataclasses.replace(base.env, **legacy)) if legacy else base
   try:
     return from_dict(d, base).check_values()
   except ValueError as e:

@@ -1,7 +1,8 @@
 """One phase of training as compiled functions: acting (lax.scan over the vmapped env), GAE and the PPO updates of
 SpecGuard (SG) and the attack agent (AA), with K iterations per host call.
 
-Phase 1 (compliance): SpecGuard flies every cruise/loiter segment (velocity-setpoint override), no attacks.
+Phase 1 (compliance): SpecGuard flies every phase of EnvConfig.override_phases (velocity-setpoint override; the
+trainer's default: all flight phases), no attacks.
 Phase 2 (adversarial, paper Algorithm 2): the attack agent drives the attacks (ppo/attacker.py) against the
 variant's controller (RC: override only while the detector's alarm is up; PC: always), with state reconstruction in
 the loop unless disabled. Iterations alternate: `alternate_iters` iterations update SG with AA frozen, then the
@@ -9,7 +10,8 @@ reverse; the turn is data in the carry, so both branches are one compiled progra
 
 Reward seen by SG: the env's per-step compliance reward (in [0, 1] normalised) + the completion bonus on mission
 completion; AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
-reached the vehicle (override active: cruise/loiter, and the alarm up for RC); its value function learns from all.
+reached the vehicle (override active: a phase of override_phases, and the alarm up for RC); its value function
+learns from all.
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ from brax.envs.wrappers.training import VmapWrapper
 from flax import struct
 
 import envs as envs_lib
+from envs.base import override_in_phase
 from envs.wrappers import AutoReset
 from specguard_jax import evaluation
-from specguard_jax.autopilot import navigator as nav_lib
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
+from specguard_jax.types import RESIDUAL_DETECTORS
 
 STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
              "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
@@ -56,9 +59,9 @@ class Carry:
 def trainer_env_options(detector: str = "none") -> dict:
   """EnvConfig fields the trainer sets on every env it trains in (benches reuse them for "the trainer's env"; the
   trainer's own come from config.env_config): no NaN fallback (its AutoReset replaces a NaN-terminated env's state,
-  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual',
-  EnvConfig.ekf_records)."""
-  return dict(nan_fallback=False, ekf_records=detector == "residual")
+  EnvConfig.nan_fallback) and no EKF per-channel records unless the detector reads them (detector 'residual' or
+  'mixed', EnvConfig.ekf_records)."""
+  return dict(nan_fallback=False, ekf_records=detector in RESIDUAL_DETECTORS)
 
 
 def _make(vehicle: str, config):
@@ -252,7 +255,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       a_sg, logp_sg = sg.sample(sg_s, obs, k1)
       setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
     phase_now = state.info["sim"]["nav"].phase
-    mask = ((phase_now == nav_lib.CRUISE) | (phase_now == nav_lib.LOITER)).astype(jnp.float32)
+    mask = override_in_phase(base.config.override_phases, phase_now).astype(jnp.float32)
     if rc:
       mask = mask * state.info["alarm"]
     out = {}

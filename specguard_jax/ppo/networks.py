@@ -1,6 +1,7 @@
 """Policy and value networks (Flax linen) and their action distributions.
 
-SpecGuard's policy (paper App. "SpecGuard Training", after Swift): 4 fully connected layers, 24 inputs. Default
+SpecGuard's policy (paper App. "SpecGuard Training", after Swift): 4 fully connected layers over the env's observation
+(envs.observation: the paper's 24 inputs, or 24 + the recovery context, the trainer's default). Default
 `hidden=(256, 256, 256)` + the output layer = 4 Dense layers, tanh activations.
 
 Action heads (`Policy.kind`):

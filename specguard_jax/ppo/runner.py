@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from envs import observation as obs_lib
 from specguard_jax import export
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import ahead as ahead_lib
@@ -111,13 +112,15 @@ class _Progress:
 
 
 def converged(history, window: int, eps: float) -> bool:
-  """Paper Algorithm 2's stop rule: |d/dt mean return| < eps for both agents, estimated as the change between the
-  means of the last two windows of iterations divided by the window length."""
+  """Paper Algorithm 2's stop rule: the mean return of both agents changes by less than eps per iteration, relative
+  to its size: |mean(last window) - mean(window before)| / window < eps x max(|mean(window before)|, 1), for both
+  history columns (SpecGuard's and the attack agent's returns). eps <= 0: never."""
   if eps <= 0 or len(history) < 2 * window:
     return False
   h = np.asarray(history[-2 * window:], np.float64)
-  d = np.abs(np.nanmean(h[window:], 0) - np.nanmean(h[:window], 0)) / window
-  return bool(np.all(d < eps))
+  before, last = np.nanmean(h[:window], 0), np.nanmean(h[window:], 0)
+  d = np.abs(last - before) / window
+  return bool(np.all(d < eps * np.maximum(np.abs(before), 1.0)))
 
 
 def _checkpointer(run_dir):
@@ -196,7 +199,7 @@ def load_run_config(run_dir: str) -> TrainConfig:
   if not os.path.exists(path):
     raise ValueError(f"cannot resume: {path} not found (not a run directory)")
   try:
-    return load_config_file(path).validate()
+    return load_config_file(path, run=True).validate()
   except ValueError as e:
     raise ValueError(f"cannot resume: {e}" if path in str(e) else f"cannot resume: {path}: {e}") from None
 
@@ -268,8 +271,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
       number = phases[host["phase_index"]]
       phase = it.make_phase(cfg, number, mesh)
       if sg_state is None:
-        sg_state = losses.with_hparams(phase.sg.init(k_sg, phase.env.observation_size if number == 1 else
-                                                     phase.env.env.observation_size), cfg.sg)
+        sg_state = losses.with_hparams(phase.sg.init(k_sg, cfg.n_obs), cfg.sg)
         aa_state = losses.with_hparams(phase.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa)
       sg_state, aa_state, k_init = distributed.replicate((sg_state, aa_state, jax.random.fold_in(k_phase, number)),
                                                          mesh)
@@ -329,7 +331,8 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
         summary_phase[number] = last
         if number == 2 and converged(host["history"], cfg.converge_window, cfg.converge_eps):
           host["converged"] = True
-          log(f"\n[train] phase 2 converged at iteration {it_end} (|d return / d iter| < {cfg.converge_eps})")
+          log(f"\n[train] phase 2 converged at iteration {it_end} "
+              f"(|d return / d iter| < {cfg.converge_eps} x |return|)")
           break
         interrupted = stop["flag"] or (stop_after_calls is not None and calls_here >= stop_after_calls)
         # Every process must take the same decision (the save is collective): OR-ed over the processes.
@@ -355,7 +358,7 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     if sg_state is None:  # resumed after the last phase: restore the final carry
       number = phases[-1]
       phase = it.make_phase(cfg, number, mesh)
-      sg0 = phase.sg.init(k_sg, 24)
+      sg0 = phase.sg.init(k_sg, cfg.n_obs)
       aa0 = phase.aa.init(k_aa, attacker_lib.N_OBS)
       fresh = abstract_carry(phase, jax.random.fold_in(k_phase, number), sg0, aa0)
       carry = _restore_carry(mgr, mgr.latest_step(), fresh)
@@ -400,8 +403,7 @@ def _compile_ahead(ahead, cfg, mesh, phases, start: int, keys, main: bool) -> No
   over the mesh, the shapes of a fresh agent's), the evaluation's policy parameters as numpy arrays."""
   k_sg, k_aa, k_phase = keys
   first = it.make_phase(cfg, phases[start], mesh)   # built here, not on a thread: make_phase is cached per config
-  n_obs = first.env.observation_size if phases[start] == 1 else first.env.env.observation_size
-  sg = jax.eval_shape(lambda: losses.with_hparams(first.sg.init(k_sg, n_obs), cfg.sg))
+  sg = jax.eval_shape(lambda: losses.with_hparams(first.sg.init(k_sg, cfg.n_obs), cfg.sg))
   aa = jax.eval_shape(lambda: losses.with_hparams(first.aa.init(k_aa, attacker_lib.N_OBS), cfg.aa))
   for number in phases[start + 1:]:
     phase = it.make_phase(cfg, number, mesh)
@@ -416,11 +418,13 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   policy = it.sg_policy(cfg)
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
-  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip)
+  layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors)
+  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip, obs_layout=layout)
   # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
   with jax.default_matmul_precision("float32"):
     res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
-                             clip=cfg.obs_clip, metadata={"vehicle": cfg.vehicle, "variant": cfg.variant})
+                             clip=cfg.obs_clip,
+                             metadata={"vehicle": cfg.vehicle, "variant": cfg.variant, "obs_layout": layout})
   return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in res.items()}
 
 
@@ -445,8 +449,7 @@ def _member_states(phase, cfgs, number, k_keys):
   """Per-member (SG state, AA state, phase init key), stacked on a leading member axis."""
   out = []
   for c, (k_sg, k_aa, k_phase) in zip(cfgs, k_keys):
-    n_obs = phase.env.observation_size if number == 1 else phase.env.env.observation_size
-    out.append((losses.with_hparams(phase.sg.init(k_sg, n_obs), c.sg),
+    out.append((losses.with_hparams(phase.sg.init(k_sg, c.n_obs), c.sg),
                 losses.with_hparams(phase.aa.init(k_aa, attacker_lib.N_OBS), c.aa),
                 jax.random.fold_in(k_phase, number)))
   return jax.tree.map(lambda *x: np.stack([np.asarray(v) for v in x]), *out)
