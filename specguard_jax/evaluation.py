@@ -49,7 +49,7 @@ j draw where the sensors agree, since only the timing options differ):
   min_obstacle [n] m     closest approach to an obstacle
   redteam_sensor [n] int  (only with an attacker) the red-team agent's target (index into SENSOR_NAMES; -1 when
                          it never attacked or the setting is not the red-team one); its onset and end are in onset
-                         and attack_end
+                         and attack_end;  redteam_mask [n, 6] every sensor it spoofed (multi-sensor attacks)
   hazard_kind [n] int    hazard-timed settings: the hazard point (index into envs.hazards.HAZARD_KINDS; -1 none or
                          not hazard-timed);  hazard_t [n] s its nominal time (BIG when not hazard-timed)
 Instantaneous compliance of a spec at a step = its binary per-step reward (specguard_jax.rewards: the body of an
@@ -315,6 +315,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     onset = jnp.where(red, a["onset"], onset)
     attack_end = jnp.where(red, jnp.where(a["started"], a["onset"] + a["used"], BIG), attack_end)
     extra["redteam_sensor"] = jnp.where(red & a["started"], a["target"], -1).astype(jnp.int32)
+    extra["redteam_mask"] = jnp.where((red & a["started"])[:, None], a["mask"], 0.0)
   mission, truth = state.info["mission"], state.info["sim"]["truth"]
   last_wp = jax.vmap(missions_lib.final_waypoint)(mission)
   d = last_wp - truth.pos

@@ -152,6 +152,7 @@ def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
     viol = M.violation(r)
     rows = [{"mission": int(r["mission"][k]), "world": int(r["world"][k]),
              "sensor": SENSOR_NAMES[int(sens[k])] if hit[k] else None,
+             "sensors": [n for j, n in enumerate(SENSOR_NAMES) if "redteam_mask" in r and r["redteam_mask"][k, j] > 0],
              "onset_s": float(onset[k]) if hit[k] else None, "duration_s": float(dur[k]) if hit[k] else None,
              "violated": bool(viol[k]), "complete": bool(r["complete"][k]), "crash": bool(r["crash"][k]),
              "collision": bool(r["collision"][k])} for k in range(len(sens))]
@@ -544,7 +545,8 @@ def policy_effect_markdown(rep, group="main") -> list:
           "= the norm of its velocity setpoint (m/s; for a residual policy, the correction) averaged over the steps it "
           "was in control, per mission, then over missions [95 % interval]; max = the mean over missions of the "
           "largest. The paired tests above say whether it changed the outcome.", "",
-          "| controller | setting | in control % | setpoint size m/s | max m/s | n |", "|---|---|---|---|---|---|"] + rows
+          "| controller | setting | in control % | setpoint size m/s | max m/s | n |",
+          "|---|---|---|---|---|---|"] + rows
 
 
 # ------------------------------------------------------------------------------------------------- figures

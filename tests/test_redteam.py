@@ -56,7 +56,7 @@ def test_trains_saves_and_reloads_with_the_same_actions(trained):
 
 
 def _always_gyro(params):
-  """params whose agent attacks the gyro from the first step on (output biases: gyro score and launch high)."""
+  """params whose agent attacks the gyro as early as it may (output biases: gyro score and launch high)."""
   params = jax.tree.map(lambda x: x, params)
   net = params["policy"]["net"]
   last = max(net)   # the output layer (dense_<last>)
@@ -74,7 +74,9 @@ def test_rollout_records_sensor_onset_and_duration(trained):
   assert np.all(rec["redteam_sensor"][~red] == -1)
   assert np.all(rec["redteam_sensor"][red] == SENSOR_NAMES.index("gyro"))
   assert np.all(rec["attacked"][red]) and not np.any(rec["attacked"][rec["setting"] == 0])
-  np.testing.assert_allclose(rec["onset"][red], 0.0)                  # on from the first step
+  # on from the first step at or after the minimum onset (after take-off), the gyro alone (the other score is 0)
+  assert np.all((rec["onset"][red] >= CFG.min_onset_s) & (rec["onset"][red] <= CFG.min_onset_s + env.dt + 1e-4))
+  np.testing.assert_array_equal(rec["redteam_mask"][red], np.eye(6)[[SENSOR_NAMES.index("gyro")] * int(red.sum())])
   dur = rec["attack_end"][red] - rec["onset"][red]
   # on until the 20 s budget is used up or the episode ends, whichever comes first (one step's slack)
   assert np.all(dur <= CFG.max_duration_s + env.dt + 1e-4)

@@ -93,7 +93,8 @@ def env_config(cfg: "TrainConfig", phase) -> EnvConfig:
     return dataclasses.replace(env, control_mode="override", detector="none", detector_delay=0.0, reconstruction=False,
                                ekf_records=False)
   if phase == 2:
-    return dataclasses.replace(env, control_mode=mode, ekf_records=env.ekf_records and env.detector in RESIDUAL_DETECTORS)
+    return dataclasses.replace(env, control_mode=mode,
+                               ekf_records=env.ekf_records and env.detector in RESIDUAL_DETECTORS)
   if phase == "eval":
     return dataclasses.replace(env, control_mode=mode, detector=cfg.eval_detector, **_EVAL_ENV_DEFAULTS)
   raise ValueError(f"unknown phase {phase!r}; choose 1, 2 or 'eval'")
@@ -111,7 +112,8 @@ class TrainConfig:
   reconstruction in the loop in phase 2; False = the ablation), env.detector (the training detector of phase 2:
   'mixed', the default, each episode the oracle's with probability env.oracle_share else the residual detector's, so
   the policy meets the deployed detector's delays and misdiagnoses; 'oracle', the true attack window after
-  env.detector_delay s with the true diagnosis; or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training speed options, see EnvConfig);
+  env.detector_delay s with the true diagnosis; or 'residual', CUSUM), env.ekf_kernel / env.unroll_ticks (training
+  speed options, see EnvConfig);
   env.control_mode comes from `variant` per phase.  eval_detector: the held-out evaluation's detector (deployment).
 
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
@@ -120,9 +122,12 @@ class TrainConfig:
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
   converge_window: stop phase 2 early (paper Algorithm 2; on by default, the phase-2 budget is the cap) when the
   average returns of both agents change by less than eps of their size per iteration, between the last two windows
-  of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units of the
-  maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance forever), so
-  finishing the mission never looks worse than dawdling.
+  of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units
+  of the maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance
+  forever), so finishing the mission never looks worse than dawdling.
+  attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
+  attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
+  weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
   """
   vehicle: str = "drone"
   variant: str = "rc"
@@ -143,7 +148,9 @@ class TrainConfig:
   attack_max_duration_s: float = 40.0
   attack_alpha: float = 1.0
   attack_beta: float = 0.0
-  attack_gamma: float = 0.0
+  attack_gamma: float = 0.1
+  attack_max_sensors: int = 2
+  attack_min_onset_s: float = 0.0
   alternate_iters: int = 10
   converge_eps: float = 1e-3
   converge_window: int = 20
@@ -240,6 +247,8 @@ class TrainConfig:
     for name in ("init_log_std", "attack_alpha", "attack_beta", "attack_gamma", "completion_bonus"):
       checks.number(name, getattr(self, name))
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
+    checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
+    checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)
     checks.number("converge_eps", self.converge_eps, 0)
     checks.number("obs_clip", self.obs_clip, 0, lo_open=True)
     checks.number("checkpoint_every_s", self.checkpoint_every_s, 0, allow_inf=True)

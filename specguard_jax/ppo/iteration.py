@@ -36,12 +36,15 @@ from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
-from specguard_jax.types import RESIDUAL_DETECTORS
+from specguard_jax.types import RESIDUAL_DETECTORS, SENSOR_NAMES
 
+AA_SENSOR_KEYS = tuple(f"aa_{s}" for s in SENSOR_NAMES)
 STAT_KEYS = ("episodes", "complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical",
              "attacked", "attacked_complete", "attacked_violated", "return_sum", "return_aa_sum", "reward_sum",
-             "override_steps")
-"""The per-iteration totals of the rollout's episode statistics (sums over steps and envs; metrics of run())."""
+             "override_steps", "aa_launches", "aa_onset_sum", "aa_attack_s") + AA_SENSOR_KEYS
+"""The per-iteration totals of the rollout's episode statistics (sums over steps and envs; metrics of run()). The
+attack agent's choices (phase 2; 0 in phase 1): attacks launched, the sum of their onsets (s), attack time (s), and
+per sensor the attacks that spoofed it (aa_<sensor>; a multi-sensor attack counts for each of its sensors)."""
 
 
 @struct.dataclass
@@ -75,7 +78,9 @@ def make_env(cfg: TrainConfig, phase: int):
   if phase == 1:
     return env
   acfg = attacker_lib.AttackerConfig(sensors=tuple(cfg.attack_sensors), max_duration_s=cfg.attack_max_duration_s,
-                                     alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma)
+                                     alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma,
+                                     max_sensors=min(cfg.attack_max_sensors, len(cfg.attack_sensors)),
+                                     min_onset_s=cfg.attack_min_onset_s)
   return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
 
 
@@ -291,10 +296,23 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     # ---- episode statistics (finished episodes only), accumulated per env and summed once after the rollout ----
     with jax.named_scope("episode_stats"):
       stats = _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa)
+      stats.update(_attack_stats(state.info, info, done))
       totals = jax.tree.map(jnp.add, totals, stats)
     ep_ret = ep_ret * (1.0 - done)
     ep_ret_aa = ep_ret_aa * (1.0 - done)
     return (sg_s, aa_s, nxt, ep_ret, ep_ret_aa, totals), out
+
+  def _attack_stats(before, after, done):
+    """{aa_* STAT_KEYS: [G, B/G]} this step's attack-agent choices: an attack launched in this step (its onset, its
+    sensors) and the attack time it used; zeros without an attack agent."""
+    zero = jnp.zeros_like(done)
+    if not adversarial:
+      return {k: zero for k in ("aa_launches", "aa_onset_sum", "aa_attack_s") + AA_SENSOR_KEYS}
+    a0, a1 = before["adv"], after["adv"]   # after: the next episode's fresh state where this one ended
+    launch = (a1["started"] & ~a0["started"] & (done == 0)).astype(jnp.float32)
+    out = {"aa_launches": launch, "aa_onset_sum": launch * a1["onset"], "aa_attack_s": a1["on"] * base.dt}
+    out.update({k: launch * a1["mask"][..., i] for i, k in enumerate(AA_SENSOR_KEYS)})
+    return out
 
   def _episode_stats(info, done, complete, r_sg, mask, ep_ret, ep_ret_aa):
     """{name: [G, B/G] float32} this step's contribution of each env to the iteration's STAT_KEYS totals."""
@@ -308,7 +326,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
              "attacked": attacked * done, "attacked_complete": attacked * complete,
              "attacked_violated": attacked * viol * done, "return_sum": ep_ret * done,
              "return_aa_sum": ep_ret_aa * done, "reward_sum": r_sg, "override_steps": mask}
-    assert tuple(stats) == STAT_KEYS
+    assert tuple(stats) == STAT_KEYS[:len(stats)]
     return stats
 
   # How often one env can be truncated in steps 0..T-2 of a rollout (EnvBase.min_truncated_episode_steps): SG's

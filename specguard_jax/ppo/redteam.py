@@ -8,8 +8,10 @@ Every controller gets the same budget (RedteamConfig: envs x steps), seeded.
 The trained agent is saved as <dir>/redteam.msgpack (flax.serialization: {'policy', 'mean', 'std'}) and
 <dir>/redteam.json (the agent's and the training's configuration, the per-iteration training history), reloaded
 with `load`, and flown deterministically (the mode of its Gaussian head) as the evaluation's red-team setting
-(specguard_jax.evaluation.redteam_setting; `RedteamAgent` is the rollout's `attacker`). It chooses the sensor, the
-bias, the onset and the duration of its one attack window per mission (AttackerConfig: at most max_duration_s).
+(specguard_jax.evaluation.redteam_setting; `RedteamAgent` is the rollout's `attacker`). It chooses the sensors (up
+to max_sensors at once), the bias, the onset (not before min_onset_s: after take-off, when a controller has a
+trusted state to recover from, as the random campaigns' onsets) and the duration of its one attack window per mission
+(at most max_duration_s).
 """
 
 from __future__ import annotations
@@ -39,14 +41,17 @@ HIDDEN = (128, 128)   # the trainer's attack agent (ppo.iteration.aa_policy)
 @dataclasses.dataclass(frozen=True)
 class RedteamConfig:
   """Training budget and game of one red-team agent. num_envs parallel missions, unroll_length steps each per PPO
-  iteration, steps: total env steps (rounded up to whole iterations). sensors / max_duration_s: what the agent may
-  attack and for how long per mission (s). completion_bonus / speeds: as TrainConfig's (the zero-sum reward, the
-  setpoint normalisation of the agent's observation). seed: initial networks, missions and exploration."""
+  iteration, steps: total env steps (rounded up to whole iterations). sensors / max_duration_s / max_sensors /
+  min_onset_s: what the agent may attack, for how long per mission (s), how many sensors at once, from when (s).
+  completion_bonus / speeds: as TrainConfig's (the zero-sum reward, the setpoint normalisation of the agent's
+  observation). seed: initial networks, missions and exploration."""
   num_envs: int = 32
   unroll_length: int = 32
   steps: int = 65_536
   sensors: tuple = SENSOR_NAMES
   max_duration_s: float = TrainConfig.attack_max_duration_s
+  max_sensors: int = 2
+  min_onset_s: float = 10.0
   completion_bonus: float = TrainConfig.completion_bonus
   speeds: tuple = TrainConfig.speeds
   ppo: PPOConfig = PPOConfig(ent_coef=0.01, num_minibatches=4)
@@ -58,7 +63,13 @@ class RedteamConfig:
     if (self.num_envs * self.unroll_length) % self.ppo.num_minibatches:
       raise ValueError(f"red-team num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible "
                        f"by num_minibatches ({self.ppo.num_minibatches})")
-    attacker_lib.AttackerConfig(sensors=tuple(self.sensors), max_duration_s=self.max_duration_s)   # validates
+    self.attack_config()   # validates
+
+  def attack_config(self) -> attacker_lib.AttackerConfig:
+    """The agent's game: the zero-sum reward alone (gamma = 0: a best response maximises violations, no shaping)."""
+    return attacker_lib.AttackerConfig(sensors=tuple(self.sensors), max_duration_s=self.max_duration_s, gamma=0.0,
+                                       max_sensors=min(self.max_sensors, len(self.sensors)),
+                                       min_onset_s=self.min_onset_s)
 
   @property
   def iterations(self) -> int:
@@ -110,7 +121,7 @@ class RedteamAgent:
 
 
 def agent_for(env, cfg: RedteamConfig) -> RedteamAgent:
-  return RedteamAgent(attacker_lib.AttackerConfig(sensors=tuple(cfg.sensors), max_duration_s=cfg.max_duration_s),
+  return RedteamAgent(cfg.attack_config(),
                       tuple(float(s) for s in cfg.speeds), float(env.dt))
 
 
@@ -198,7 +209,8 @@ def save(out_dir: str, agent: RedteamAgent, params, cfg: RedteamConfig, history=
     f.write(flax.serialization.to_bytes(jax.device_get(params)))
   a = agent.attack
   meta = {"agent": {"sensors": list(a.sensors), "max_duration_s": a.max_duration_s, "scale": a.scale,
-                    "alpha": a.alpha, "beta": a.beta, "gamma": a.gamma, "speeds": list(agent.speeds),
+                    "alpha": a.alpha, "beta": a.beta, "gamma": a.gamma, "max_sensors": a.max_sensors,
+                    "min_onset_s": a.min_onset_s, "speeds": list(agent.speeds),
                     "dt": agent.dt, "obs_clip": agent.obs_clip, "hidden": list(agent.hidden)},
           "training": {**{k: v for k, v in dataclasses.asdict(cfg).items() if k != "ppo"},
                        "ppo": dataclasses.asdict(cfg.ppo), "iterations": cfg.iterations},
@@ -223,7 +235,9 @@ def load(out_dir: str):
     m = meta["agent"]
     attack = attacker_lib.AttackerConfig(sensors=tuple(m["sensors"]), max_duration_s=float(m["max_duration_s"]),
                                          scale=float(m["scale"]), alpha=float(m["alpha"]), beta=float(m["beta"]),
-                                         gamma=float(m["gamma"]))
+                                         gamma=float(m["gamma"]),
+                                         max_sensors=int(m.get("max_sensors", 1)),
+                                         min_onset_s=float(m.get("min_onset_s", 0.0)))
     agent = RedteamAgent(attack, tuple(float(s) for s in m["speeds"]), float(m["dt"]), float(m["obs_clip"]),
                          tuple(int(h) for h in m["hidden"]))
   except (OSError, ValueError, KeyError, TypeError) as e:

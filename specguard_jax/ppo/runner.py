@@ -35,6 +35,7 @@ from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import distributed, losses
 from specguard_jax.ppo import iteration as it
 from specguard_jax.ppo.config import TRAIN_ENV, TrainConfig, load_config_file
+from specguard_jax.types import SENSOR_NAMES
 
 RATE_KEYS = ("complete", "collision", "crash", "stall", "nan", "fence_breach", "violated", "critical")
 COMPILE_NOTE = "(first run takes a while; cached afterwards)"   # the persistent cache: specguard_jax.compile_cache
@@ -50,6 +51,12 @@ def derived(m: dict) -> dict:
   out["svr_attacked"] = f(m["attacked_violated"], m["attacked"])
   out["return"] = f(m["return_sum"], eps)
   out["return_aa"] = f(m["return_aa_sum"], eps)
+  if "aa_launches" in m:   # the attack agent's choices (phase 2): launches per episode, mean onset and duration (s),
+    n = m["aa_launches"]   # and the share of its attacks that spoofed each sensor
+    out["aa_launch_rate"] = f(n, eps)
+    out["aa_onset_mean"] = f(m["aa_onset_sum"], n)
+    out["aa_duration_mean"] = f(m["aa_attack_s"], n)
+    out.update({f"{k}_share": f(m[k], n) for k in m if k.startswith("aa_") and k[3:] in SENSOR_NAMES})
   return out
 
 
