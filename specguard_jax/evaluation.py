@@ -138,6 +138,14 @@ def campaign_setting(campaign: str, sensors, profile: str = "overt", designed_ra
   return Setting(f"{campaign}/{'+'.join(sensors)}/{profile}", acfg, tuple(hazard_lead_s))
 
 
+def false_alarm_setting(sensor: str) -> Setting:
+  """'false_alarm/<sensor>': an attack-free mission with a zero-bias attack on the sensor (the random campaigns'
+  timing), so that an oracle detector raises the alarm and blames the sensor while nothing is wrong: the cost of a
+  false alarm (the reconstruction drops a good sensor, an RC policy takes control; evaluate.py --false-alarms)."""
+  acfg = attacks_lib.AttackConfig(sensors=(sensor,), profiles=("overt",), scale=0.0)
+  return Setting(f"false_alarm/{sensor}", acfg)
+
+
 def redteam_setting(sensors=attacks_lib.SENSOR_NAMES) -> Setting:
   """The red-team campaign's setting 'redteam/<sensors>/agent' (module docstring): the attack agent may target any
   of `sensors` (its training's AttackerConfig.sensors; '+'-joined in the name)."""

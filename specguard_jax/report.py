@@ -436,6 +436,7 @@ def markdown(rep) -> str:
                f"{_f(_pct(v['critical_rate']['value']))} |")
   L += paired_markdown(rep)
   L += policy_effect_markdown(rep)
+  L += false_alarm_markdown(rep)
   L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
   return "\n".join(L)
 
@@ -525,6 +526,24 @@ def paired_markdown(rep, group="main") -> list:
           "exact p-value (binomial test of b against Bin(b + c, 1/2)). SVR: over the missions whose no-protection "
           "twin violated; any / critical violation: over all missions of the setting.", "",
           "| setting | pair | SVR b/c p | any violation b/c p | critical b/c p |", "|---|---|---|---|---|"] + rows
+
+
+def false_alarm_markdown(rep) -> list:
+  """The false-alarm group (evaluate.py --false-alarms): attack-free missions under a forced alarm, per controller."""
+  fa = rep["groups"].get("false_alarm", {}).get("metrics", {})
+  if not fa:
+    return []
+  L = ["", "## Forced false alarms: attack-free missions with the alarm raised (zero-bias attack, oracle detector)", "",
+       "What a false alarm costs: the reconstruction drops a good sensor, an RC policy takes control. No protection "
+       "flies the same missions without any alarm.", "",
+       "| controller | setting | missions | any viol. [CI] | critical % | RSR [CI] | MD % | in control % |",
+       "|---|---|---|---|---|---|---|---|"]
+  for c, rows in fa.items():
+    for s, v in rows.items():
+      L.append(f"| {c} | {s} | {v['missions']} | {_ci(v.get('any_violation_rate'))} | "
+               f"{_f(_pct(v['critical_rate']['value']))} | {_ci(v['rsr_rate'])} | {_f(v['md'])} | "
+               f"{_ci(v.get('control_rate'))} |")
+  return L + paired_markdown(rep, group="false_alarm") + policy_effect_markdown(rep, group="false_alarm")
 
 
 def policy_effect_markdown(rep, group="main") -> list:

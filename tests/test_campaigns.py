@@ -138,6 +138,23 @@ def test_hard_suite_plan(monkeypatch):
     _plan("--campaigns", "loud")
 
 
+def test_false_alarm_group_plan():
+  """--false-alarms: a group of zero-bias attacks (an oracle alarm on attack-free flights) in which every controller
+  but no protection flies with the oracle detector; --suite paper has it on the GPS by default."""
+  p = _plan("--controllers", "delorean,fallback", "--false-alarms", "gps,baro")
+  g = p["groups"]["false_alarm"]
+  assert [s.name for s in g["settings"]] == ["false_alarm/gps", "false_alarm/baro"]
+  assert g["controllers"] == ["no_protection", ("variant", "delorean", "delorean", cli.FORCED_ALARM),
+                              ("variant", "fallback", "fallback", cli.FORCED_ALARM)]
+  sched = attacks.sample_attack(g["settings"][0].attack, jax.random.PRNGKey(0), jnp.float32(100.0))
+  assert float(np.sum(sched.mask)) == 1.0 and float(np.abs(np.asarray(sched.bias)).max()) == 0.0
+  assert float(sched.onset) < 1e8                                  # an attack window, with nothing injected
+  assert "false_alarm" not in _plan("--controllers", "delorean")["groups"]
+  assert [s.name for s in _plan("--suite", "paper")["groups"]["false_alarm"]["settings"]] == ["false_alarm/gps"]
+  with pytest.raises(ValueError, match="--false-alarms: unknown sensor.s. radar"):
+    _plan("--false-alarms", "radar")
+
+
 @pytest.fixture(scope="module")
 def hard(tmp_path_factory):
   out = str(tmp_path_factory.mktemp("hard"))

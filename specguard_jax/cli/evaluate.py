@@ -106,6 +106,10 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--params", metavar="FILE",
                  help="autopilot parameter file (PX4 .params or ArduPilot .parm): spec parameters, mission speed and "
                       "acceptance radius, home-centred fence (EnvConfig.params_file)")
+  p.add_argument("--false-alarms", metavar="SENSORS",
+                 help="comma-separated sensors: a 'false_alarm' group flies attack-free missions on which the alarm is "
+                      "raised anyway (a zero-bias attack on the sensor, the oracle detector: the paper's forced false "
+                      "alarms), every controller but no protection (default: gps with --suite paper, else none)")
   p.add_argument("--traj", type=int, default=2, help="missions per setting whose trajectories are recorded")
   p.add_argument("--train-budget", choices=("ci", "full"), help="baseline training size (default: GPU full, CPU ci)")
   p.add_argument("--no-figures", action="store_true")
@@ -161,6 +165,19 @@ def _git_commit() -> str | None:
                           cwd=root).stdout.strip() or None
   except (OSError, subprocess.SubprocessError):
     return None
+
+
+FORCED_ALARM = (("detector", "oracle"), ("detector_delay", 0.0))
+"""Env overrides of the false-alarm group: the oracle raises the alarm over the zero-bias attack's window."""
+
+
+def _forced_alarm(c):
+  """A main-group controller entry as a variant with the oracle detector (the false-alarm group)."""
+  if isinstance(c, str):
+    return ("variant", c, c, FORCED_ALARM)
+  if c[0] == "variant":
+    return ("variant", c[1], c[2], tuple(c[3]) + FORCED_ALARM)
+  return c
 
 
 def plan(args) -> dict:
@@ -276,6 +293,16 @@ def plan(args) -> dict:
   groups = {"main": {"vehicle": vehicle, "worlds": worlds, "settings": main_settings, "controllers": names,
                      "ctx": ctx, "designed": single if "designed" in campaigns else ()}}
   skipped = {}
+  fa = _csv(args.false_alarms) if args.false_alarms is not None else (("gps",) if args.suite == "paper" else ())
+  bad = [s for s in fa if s not in attacks_lib.SENSOR_NAMES]
+  if bad:
+    raise ValueError(f"--false-alarms: unknown sensor(s) {', '.join(bad)}; choose from "
+                     f"{', '.join(attacks_lib.SENSOR_NAMES)}")
+  if fa:
+    groups["false_alarm"] = {"vehicle": vehicle, "worlds": worlds,
+                             "settings": tuple(E.false_alarm_setting(s) for s in fa), "ctx": ctx,
+                             "controllers": ["no_protection"] + [_forced_alarm(c) for c in names
+                                                                 if c != "no_protection"]}
   if args.suite == "paper":
     single = tuple(s for s in sensors if "+" not in s)
     for role, (gname, gworlds) in UNSEEN.items():
