@@ -177,10 +177,10 @@ def budget_summary(name: str) -> dict:
 
 
 def build_meta(ctx, name: str) -> dict:
-  """What a built baseline's cache says about its training (msgpack meta; FTC: summary + phase-2 return curve)."""
-  if name != "ftc":
+  """What a built baseline's cache says about its training (msgpack meta; FTC-RL: summary + phase-2 return curve)."""
+  if name != "ftc_rl":
     return load_tree(cache_path(ctx, name, "msgpack"))[1]
-  run = cache_path(ctx, "ftc", "")
+  run = cache_path(ctx, "ftc_rl", "")
   with open(os.path.join(run, "summary.json")) as f:
     s = json.load(f)
   curve = []
