@@ -27,6 +27,9 @@ from specguard_jax.baselines import common
 from specguard_jax.estimation import ffc as ffc_lib
 
 
+INPUT_NOISE = 0.1   # standard deviations of the standardised inputs (fit_ffc)
+
+
 @functools.partial(jax.jit, static_argnames=("p", "dt"))
 def pid_outputs(p: px4.MulticopterParams, vel_sp, vel, dt: float):
   """The velocity PID's acceleration setpoints [B, T, 3] (m/s^2) replayed from the velocity setpoints vel_sp and the
@@ -63,9 +66,10 @@ def windows(feats, rows):
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "batch"))
-def fit_ffc(feats, targets, mask, key, steps: int, batch: int, lr: float = 2e-3):
+def fit_ffc(feats, targets, mask, key, steps: int, batch: int, lr: float = 2e-3, noise: float = INPUT_NOISE):
   """Fit the FFC on the missions of feats [B, T, n] / targets [B, T, 3] where mask [B, T]: Adam (common.adam_fit) on
-  the standardised MSE. Returns (params for ffc.ffc_apply, losses [steps])."""
+  the standardised MSE, Gaussian noise of `noise` standard deviations added to each standardised input window (a
+  regulariser: a few training missions are otherwise memorised). Returns (params for ffc.ffc_apply, losses)."""
   n = feats.shape[-1]
   w = mask.reshape(-1).astype(jnp.float32)
   ws = jnp.maximum(jnp.sum(w), 1.0)
@@ -79,8 +83,8 @@ def fit_ffc(feats, targets, mask, key, steps: int, batch: int, lr: float = 2e-3)
   p0 = net.init(k_init, jnp.zeros((1, ffc_lib.WINDOW, n)))
 
   def loss_fn(p, idx, k):
-    del k
     x = (windows(feats, idx) - x_mean) / x_std
+    x = x + noise * jax.random.normal(k, x.shape)
     return jnp.mean((net.apply(p, x) - (yf[idx] - y_mean) / y_std) ** 2)
 
   p, losses = common.adam_fit(loss_fn, p0, w, steps, batch, k_fit, lr)
