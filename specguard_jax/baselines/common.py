@@ -43,7 +43,7 @@ class Budget:
 
 def budget(name: str) -> Budget:
   if name == "ci":
-    return Budget(missions=8, seconds=30.0, fit_steps=1500, batch=256, pair_stride=1)
+    return Budget(missions=24, seconds=30.0, fit_steps=1500, batch=256, pair_stride=1)
   if name == "full":
     return Budget(missions=512, seconds=90.0, fit_steps=20000, batch=2048, pair_stride=5)
   raise ValueError(f"unknown train_budget {name!r}; choose one of {', '.join(BUDGETS)}")

@@ -28,6 +28,7 @@ from specguard_jax.estimation import ffc as ffc_lib
 
 
 INPUT_NOISE = 0.1   # standard deviations of the standardised inputs (fit_ffc)
+STD_FLOOR = 0.1     # added to each input's standard deviation (fit_ffc)
 
 
 @functools.partial(jax.jit, static_argnames=("p", "dt"))
@@ -66,16 +67,19 @@ def windows(feats, rows):
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "batch"))
-def fit_ffc(feats, targets, mask, key, steps: int, batch: int, lr: float = 2e-3, noise: float = INPUT_NOISE):
+def fit_ffc(feats, targets, mask, key, steps: int, batch: int, lr: float = 2e-3, noise: float = INPUT_NOISE,
+            std_floor: float = STD_FLOOR):
   """Fit the FFC on the missions of feats [B, T, n] / targets [B, T, 3] where mask [B, T]: Adam (common.adam_fit) on
   the standardised MSE, Gaussian noise of `noise` standard deviations added to each standardised input window (a
-  regulariser: a few training missions are otherwise memorised). Returns (params for ffc.ffc_apply, losses)."""
+  regulariser: a few training missions are otherwise memorised). Each input's scale is its standard deviation plus
+  std_floor (in its own unit: m/s, rad, rad/s, m/s^2), so an input that hardly varies in cruise (the vertical
+  setpoint) cannot blow up on a mission that moves it. Returns (params for ffc.ffc_apply, losses)."""
   n = feats.shape[-1]
   w = mask.reshape(-1).astype(jnp.float32)
   ws = jnp.maximum(jnp.sum(w), 1.0)
   ff, yf = feats.reshape(-1, n), targets.reshape(-1, 3)
   x_mean = jnp.sum(ff * w[:, None], 0) / ws
-  x_std = jnp.sqrt(jnp.sum((ff - x_mean) ** 2 * w[:, None], 0) / ws) + 1e-3
+  x_std = jnp.sqrt(jnp.sum((ff - x_mean) ** 2 * w[:, None], 0) / ws) + std_floor
   y_mean = jnp.sum(yf * w[:, None], 0) / ws
   y_std = jnp.sqrt(jnp.sum((yf - y_mean) ** 2 * w[:, None], 0) / ws) + 1e-3
   net = ffc_lib.FFCNet(ffc_lib.HIDDEN)
