@@ -56,7 +56,7 @@ PROXIMITY_STREAM = 0x0B5   # fold_in tag of the range sensors' noise key
 ORACLE_STREAM = 0x0AC     # fold_in tag of detector "mixed"'s per-episode draw
 OVERRIDE_FRAMES = ("world", "body")
 OVERRIDE_PHASES = ("cruise_loiter", "all")
-RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae")  # prior-work baselines (specguard_jax.baselines)
+RECOVERY_ESTIMATORS = ("none", "software_sensors", "dae", "imu_denoise", "ffc", "ftc")  # prior-work baselines
 RECOVERY_RULES = ("none", "fallback")   # rule-based setpoint changes while the alarm is up (autopilot/fallback.py)
 PAPER_LAG_S = 1.0   # s; least checkpoint lag of the paper-mode reconstruction (EnvConfig.recon_mode, _recon_config)
 
@@ -135,8 +135,11 @@ class EnvConfig:
   recon_mode: str = "fused"
   # Prior-work baselines (specguard_jax.baselines, docs/BASELINES.md), active while the detector's alarm is up:
   # 'software_sensors' (SSR: model-predicted readings replace the compromised sensor's before the autopilot's EKF) |
-  # 'dae' (UnRocker: the autopilot flies on the denoising autoencoder's estimate). recovery_model: the file the
-  # estimator loads (SSR: its specific-force model, UnRocker: its DAE; msgpack files the baseline builders write).
+  # 'dae' (the autopilot flies on a denoising autoencoder's state estimate) | 'imu_denoise' (UnRocker: the EKF fuses
+  # temporally denoised IMU readings) | 'ffc' (PID-Piper: a learned feed-forward controller's acceleration setpoint
+  # replaces the velocity PID's at the attitude loop) | 'ftc' (FTC: a fault-tolerant attitude envelope); the last two
+  # drone only (specguard_jax.estimation.hooks). recovery_model: the file the estimator loads (SSR: its
+  # specific-force model, 'dae': its DAE, 'ffc': its FFC; msgpack files the baseline builders write).
   recovery_estimator: str = "none"
   recovery_model: str = ""
   # 'fallback': while the alarm is up the navigator's horizontal setpoint slows down in proportion to the

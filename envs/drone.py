@@ -92,8 +92,11 @@ class DroneEnv(RAVEnv):
     yaw_sp = jnp.where(cruising, jnp.arctan2(leg_dir[1], leg_dir[0]), yaw_hold)
     armed = ~((nav.phase == nav_lib.DONE) & veh["on_ground"])
     rate_est = readings.gyro - ekf.gyro_bias
-    ctrl, rotors, _ = px4.mc_control(self.mc_params, self.airframe, sim["ctrl"], vel_sp, yaw_sp, ekf.vel, ekf.quat,
-                                     rate_est, dt, armed)
+    acc_sp, ctrl = px4.velocity_control(self.mc_params, sim["ctrl"], vel_sp, ekf.vel, dt)
+    if self.recovery is not None:   # baseline hook (PID-Piper, FTC): the acceleration (attitude + thrust) setpoint
+      sim, acc_sp = self.recovery.acc_setpoint(sim, acc_sp, vel_sp)
+    ctrl, rotors, _ = px4.attitude_cascade(self.mc_params, self.airframe, ctrl, acc_sp, yaw_sp, ekf.quat, rate_est, dt,
+                                           armed)
     # ---- physics ----
     thrusts = rotors * dr["thrust_gain"]
     v = phys.qvel[:3]

@@ -1,7 +1,7 @@
 """Build (train/fit) the prior-work baselines at a budget into a cache dir and time each step; prints one JSON object.
 
   python experiments/build_baselines.py --budget full --out runs/default/eval/baselines    # GPU, before evaluate.py
-  JAX_PLATFORMS=cpu python experiments/build_baselines.py --budget ci --out /tmp/bl --only ssr,unrocker,pid_piper
+  JAX_PLATFORMS=cpu python experiments/build_baselines.py --budget ci --out /tmp/bl --only ssr,unrocker_dae,pid_piper
 
 The cache names are <name>_<vehicle>_<budget>_s<seed> (specguard_jax.baselines.common.cache_path): evaluate.py reuses
 them when --out here is <evaluate --out>/baselines and --seed is evaluate.py's --seed (default 10000 for both).
@@ -20,7 +20,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-NAMES = ("ssr", "unrocker", "pid_piper", "ftc")
+NAMES = ("ssr", "unrocker_dae", "pid_piper", "ftc_rl")   # the baselines that train (unrocker, ftc: rules)
 
 
 def _fail(msg: str):
@@ -51,13 +51,13 @@ def main(argv=None) -> dict:
   res = {"device": str(jax.devices()[0].device_kind), "backend": jax.default_backend(), "jax": jax.__version__,
          "budget": args.budget, "budget_sizes": common.budget_summary(args.budget), "vehicle": args.vehicle,
          "seed": args.seed, "out": os.path.abspath(args.out), "wall_s": {}, "cpu_s": {}, "meta": {}}
-  if "ftc" in names:
+  if "ftc_rl" in names:
     from specguard_jax.baselines import ftc
     fc = ftc.train_config(ctx)
     res["ftc_sizes"] = {"num_envs": fc.num_envs, "unroll_length": fc.unroll_length,
                         "phase1_steps": fc.phase1_steps, "phase2_steps": fc.phase2_steps}
   t_all, c_all = time.time(), time.process_time()
-  need_flights = any(n != "ftc" and not os.path.exists(common.cache_path(ctx, n, "msgpack")) for n in names)
+  need_flights = any(n != "ftc_rl" and not os.path.exists(common.cache_path(ctx, n, "msgpack")) for n in names)
   if need_flights:
     t0, c0 = time.time(), time.process_time()
     common.flights(args.vehicle, worlds, args.budget, args.seed)
@@ -65,7 +65,7 @@ def main(argv=None) -> dict:
     res["cpu_s"]["flights"] = round(time.process_time() - c0, 2)
     print(f"flights recorded in {res['wall_s']['flights']} s", file=sys.stderr, flush=True)
   for n in names:
-    if n == "ftc":   # the recording is not needed any more: free its device memory before PPO
+    if n == "ftc_rl":   # the recording is not needed any more: free its device memory before PPO
       common.flights.cache_clear()
     t0, c0 = time.time(), time.process_time()
     try:

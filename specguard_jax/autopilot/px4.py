@@ -235,6 +235,14 @@ def mc_control(p: MulticopterParams, airframe: Airframe, cs: MCControlState, vel
   armed: [] bool; when False (landed / mission done) rotors are off and integrators reset.
   """
   acc_sp, cs = velocity_control(p, cs, vel_sp, vel, dt)
+  return attitude_cascade(p, airframe, cs, acc_sp, yaw_sp, quat, rate, dt, armed)
+
+
+def attitude_cascade(p: MulticopterParams, airframe: Airframe, cs: MCControlState, acc_sp, yaw_sp, quat, rate, dt,
+                     armed):
+  """The cascade below the velocity PID, from its output: acceleration setpoint [3] (world m/s^2, gravity excluded)
+  -> attitude + collective thrust -> body rates -> torques -> rotor thrusts. The entry of controllers that act at
+  the attitude loop (the prior-work baselines' `Estimator.acc_setpoint`). Returns what `mc_control` returns."""
   r_des, thrust = thrust_attitude(p, airframe.hover_thrust, acc_sp, yaw_sp)
   rate_sp = attitude_control(p, r_des, quat)
   torque, cs = rate_control(p, cs, rate_sp, rate, dt, integrate=armed)

@@ -43,7 +43,7 @@ class Budget:
 
 def budget(name: str) -> Budget:
   if name == "ci":
-    return Budget(missions=8, seconds=30.0, fit_steps=1500, batch=256, pair_stride=1)
+    return Budget(missions=24, seconds=30.0, fit_steps=1500, batch=256, pair_stride=1)
   if name == "full":
     return Budget(missions=512, seconds=90.0, fit_steps=20000, batch=2048, pair_stride=5)
   raise ValueError(f"unknown train_budget {name!r}; choose one of {', '.join(BUDGETS)}")
@@ -177,10 +177,10 @@ def budget_summary(name: str) -> dict:
 
 
 def build_meta(ctx, name: str) -> dict:
-  """What a built baseline's cache says about its training (msgpack meta; FTC: summary + phase-2 return curve)."""
-  if name != "ftc":
+  """What a built baseline's cache says about its training (msgpack meta; FTC-RL: summary + phase-2 return curve)."""
+  if name != "ftc_rl":
     return load_tree(cache_path(ctx, name, "msgpack"))[1]
-  run = cache_path(ctx, "ftc", "")
+  run = cache_path(ctx, "ftc_rl", "")
   with open(os.path.join(run, "summary.json")) as f:
     s = json.load(f)
   curve = []

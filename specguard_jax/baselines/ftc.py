@@ -1,4 +1,5 @@
-"""FTC baseline (fault-tolerant RL recovery control trained only to avoid crashes; the paper's "recovery-rl").
+"""FTC-RL baseline 'ftc_rl' (fault-tolerant RL recovery control trained only to avoid crashes, acting through the
+velocity setpoint; the former FTC stand-in: 'ftc' now acts at the attitude loop, baselines/ftc_attitude.py).
 
 Trained with OUR trainer (specguard_jax.ppo.runner.train, the same PPO, networks and attack agent as SpecGuard) with
 reward='survival' (envs: 1 per step in flight, 0 on the crash/collision step; no spec terms; the completion bonus
@@ -45,8 +46,8 @@ def train_config(ctx) -> config_lib.TrainConfig:
 
 
 def build(ctx):
-  """Controller 'ftc': train (or load from ctx.cache_dir/ftc_<vehicle>_<budget>_s<seed>/) and deploy."""
-  run_dir = common.cache_path(ctx, "ftc", "")
+  """Controller 'ftc_rl': train (or load from ctx.cache_dir/ftc_rl_<vehicle>_<budget>_s<seed>/) and deploy."""
+  run_dir = common.cache_path(ctx, "ftc_rl", "")
   cfg = train_config(ctx)
   if not os.path.exists(os.path.join(run_dir, "summary.json")):
     resume = os.path.exists(os.path.join(run_dir, "config.json"))
@@ -61,6 +62,6 @@ def build(ctx):
     raise ValueError(f"corrupt baseline cache {run_dir}: holds a {run_cfg.vehicle} run with reward "
                      f"{run_cfg.env.reward!r}, not an FTC (survival) run (delete it to retrain)")
   over = controllers.run_overrides(dataclasses.replace(run_cfg, eval_detector="residual"), reconstruction=False)
-  return controllers.Controller("ftc", over, fn, p,
-                                "FTC: RL recovery policy trained by our PPO only to survive (no specs), reactive, "
+  return controllers.Controller("ftc_rl", over, fn, p,
+                                "FTC-RL: RL recovery policy trained by our PPO only to survive (no specs), reactive, "
                                 "no state reconstruction")

@@ -1,4 +1,5 @@
-"""The interface of an in-tick recovery estimator (the prior-work baselines' SSR and UnRocker hooks, estimation.hooks).
+"""The interface of an in-tick recovery hook (the prior-work baselines' SSR, UnRocker, PID-Piper and FTC hooks,
+estimation.hooks).
 
 Subclasses override what they change; the defaults pass readings and estimate through.
 """
@@ -18,3 +19,9 @@ class Estimator:
   def post_ekf(self, sim, est, readings):
     del readings
     return sim, est
+
+  def acc_setpoint(self, sim, acc_sp, vel_sp):
+    """The acceleration setpoint [3] (world m/s^2, gravity excluded) the multicopter's attitude loop flies, given the
+    velocity PID's acc_sp and the velocity setpoint vel_sp [3] m/s it tracked (envs/drone.py; rovers never call it)."""
+    del vel_sp
+    return sim, acc_sp
