@@ -80,7 +80,7 @@ def test_rollout_records_sensor_onset_and_duration(trained):
   dur = rec["attack_end"][red] - rec["onset"][red]
   # on until the 20 s budget is used up or the episode ends, whichever comes first (one step's slack)
   assert np.all(dur <= CFG.max_duration_s + env.dt + 1e-4)
-  assert np.all(dur >= np.minimum(CFG.max_duration_s, rec["t_end"][red]) - env.dt - 1e-4)
+  assert np.all(dur >= np.minimum(CFG.max_duration_s, rec["t_end"][red] - rec["onset"][red]) - env.dt - 1e-4)
   # the scripted settings keep their sampled schedules
   assert np.all(rec["onset"][rec["setting"] == 1] < 1e8)
 

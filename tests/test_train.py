@@ -462,14 +462,15 @@ def test_flags_and_set_reach_the_config_through_from_dict(capsys):
   assert cfg.env.detector_delay == 1.0 and isinstance(cfg.env.detector_delay, float)
   assert (cfg.seed, cfg.num_envs, cfg.phase1_steps, cfg.phase2_steps) == (5, 64, 500, 501)
   assert cfg.sg.lr == 1e-4 and cfg.activation == "relu"
-  cfg = train_cli.build_config(train_cli.parse_args(["--set", "env.ekf_records=false"]))
+  cfg = train_cli.build_config(train_cli.parse_args(["--detector", "oracle", "--set", "env.ekf_records=false"]))
   assert not config.env_config(cfg, 2).ekf_records and config.env_config(cfg, "eval").ekf_records
   for argv, msg in ((["--set", "env.bogus=1"], "unknown env key(s) bogus"),
                     (["--set", "seed=abc"], "config key 'seed' must be int, got 'abc'"),
                     (["--set", "env.clearance=[1]"], "config key 'env.clearance' must be float"),
                     (["--set", "clearance"], "bad --set item 'clearance'"),
                     (["--set", "env.control_mode=override"], "env.control_mode is set per phase from variant"),
-                    (["--detector", "residual", "--set", "env.ekf_records=false"], "needs ekf_records=True")):
+                    (["--detector", "residual", "--set", "env.ekf_records=false"], "needs ekf_records=True"),
+                    (["--set", "env.ekf_records=false"], "detector='mixed' reads the EKF's test ratios")):
     assert train_cli.main(argv) == 2, argv
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("train.py: error: ") and msg in err[0], (argv, err)
