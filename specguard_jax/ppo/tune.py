@@ -161,13 +161,14 @@ def heldout_means(h: dict) -> dict:
 @dataclasses.dataclass(frozen=True)
 class StudySpec:
   """What train.py --tune asks: trials (finished trials the study should hold), batch (trials asked at once),
-  storage (an Optuna storage URL), name (the study's), objective (OBJECTIVES), pruner (PRUNERS)."""
+  storage (an Optuna storage URL), name (the study's), objective (OBJECTIVES), pruner (a PRUNERS name or an Optuna
+  pruner object). The pruners and sampler are not kept in the storage: a resumed study gets them from here again."""
   trials: int
   batch: int
   storage: str
   name: str
   objective: str = "svr"
-  pruner: str = "median"
+  pruner: object = "median"
 
 
 def _study(spec: StudySpec, seed: int, log):
@@ -175,9 +176,11 @@ def _study(spec: StudySpec, seed: int, log):
   optuna.logging.set_verbosity(optuna.logging.WARNING)
   metrics = OBJECTIVES[spec.objective]
   directions = [d for _, d in metrics]
-  pruner = {"median": lambda: optuna.pruners.MedianPruner(n_startup_trials=spec.batch),
-            "halving": lambda: optuna.pruners.SuccessiveHalvingPruner(),
-            "none": lambda: optuna.pruners.NopPruner()}[spec.pruner]()
+  pruner = spec.pruner
+  if isinstance(pruner, str):   # median: prunes from the second batch on, against the first batch's finished trials
+    pruner = {"median": lambda: optuna.pruners.MedianPruner(n_startup_trials=spec.batch),
+              "halving": lambda: optuna.pruners.SuccessiveHalvingPruner(),
+              "none": lambda: optuna.pruners.NopPruner()}[pruner]()
   # Reseeded by the study's trial count, so a resumed study does not replay the first run's random startup points.
   probe = optuna.create_study(storage=spec.storage, study_name=spec.name, directions=directions, load_if_exists=True)
   if [d.name.lower() for d in probe.directions] != directions:
@@ -286,11 +289,12 @@ def _run_group(study, grp, metrics, prune, out, *, progress, export, compile_ahe
 
   cfgs = [dataclasses.replace(c, eval_missions=0) for _, _, c in grp]   # on_call evaluates; not again at the end
   names = [f"trial_{t.number}" for t, _, _ in grp]
-  summaries = runner.train_sweep(cfgs, names, out, progress=progress, export=export, log=log,
-                                 compile_ahead=compile_ahead, on_call=on_call)
-  for s, (t, point, _) in enumerate(grp):
-    t.set_user_attr("run_dir", summaries[s]["run_dir"])
+  for (t, _, _), name in zip(grp, names):   # before training: a trial told PRUNED takes no more attributes
+    t.set_user_attr("run_dir", os.path.abspath(os.path.join(out, name)))
     t.set_user_attr("program_members", S)
+  runner.train_sweep(cfgs, names, out, progress=progress, export=export, log=log, compile_ahead=compile_ahead,
+                     on_call=on_call)
+  for s, (t, point, _) in enumerate(grp):
     if not live[s]:
       continue
     vals = final[s]
