@@ -12,6 +12,12 @@ Types: log_uniform, uniform (floats, low < high, log_uniform needs low > 0), int
 "step" > 0 and "log": true), categorical (a non-empty list of JSON values; lists and objects are offered to Optuna as
 their JSON text). Both ends of a range and every choice must give a valid config.
 
+Objectives: svr / rsr are the held-out evaluation's (iteration.heldout with the config's eval_missions per setting,
+averaged over its settings), scored after every host call while pruning (only after the last one otherwise);
+return is the SpecGuard agent's training return: the mean over the episodes that ended in the last iteration of the
+latest host call that had any (a call before the first such one reports nothing). A trial's scores (all three where
+evaluated) are its user attribute 'scores'.
+
 A batch's members are grouped by compiled program (iteration.program_config): members differing only in
 runner.SWEEP_DATA_KEYS (seed, the agents' learning rate, entropy/value coefficients, clip range) train as ONE vmapped
 program whose member axis is sharded over the devices; other groups train one after another.
@@ -245,6 +251,9 @@ def run_study(base: C.TrainConfig, dims, spec: StudySpec, out: str, *, progress:
         _run_group(study, grp, metrics, prune, out, progress=progress, export=export, compile_ahead=compile_ahead,
                    log=log)
       running = []
+      if _finished(study) == done:   # every trial of the batch failed: another batch would fail the same way
+        raise ValueError("no trial of the batch finished: " + "; ".join(
+            f"trial {t.number}: {study.get_trials(deepcopy=False)[t.number].user_attrs.get('error')}" for t in asked))
   except BaseException:
     mine = {t.number for t in running}   # an interruption (Ctrl-C, an error): this batch's unfinished trials
     for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):   # FAIL, and are asked again later
@@ -261,28 +270,31 @@ def _run_group(study, grp, metrics, prune, out, *, progress, export, compile_ahe
   S = len(grp)
   live = [True] * S
   final = [None] * S
+  returns = [float("nan")] * S   # each member's latest finite training return (NaN in a call where no episode ended)
   missions = grp[0][2].eval_missions
   heldout_needed = any(m != "return" for m in metrics)
 
-  def score(s, sg_state, train_metrics):
-    vals = {"return": train_metrics[s]["return"]}
+  def score(s, sg_state):
+    vals = {"return": returns[s]}
     if heldout_needed:
       vals.update(heldout_means(it.heldout(grp[s][2], _member(sg_state, s), missions)))
     return vals
 
   def on_call(step, last_call, sg_state, train_metrics):
     for s, (t, _, _) in enumerate(grp):
+      if math.isfinite(train_metrics[s]["return"]):
+        returns[s] = train_metrics[s]["return"]
       if not live[s] or not (prune or last_call):
         continue
-      vals = score(s, sg_state, train_metrics)
+      vals = score(s, sg_state)
       if last_call:
         final[s] = vals
-      if not prune:
+      if not prune or not math.isfinite(vals[metrics[0]]):   # no return yet: nothing to report at this call
         continue
       t.report(vals[metrics[0]], step)
       if not last_call and t.should_prune():
         live[s] = False
-        t.set_user_attr("heldout", vals)
+        t.set_user_attr("scores", vals)
         study.tell(t, state=TrialState.PRUNED)
         log(f"[tune] trial {t.number} pruned after host call {step + 1} ({metrics[0]} {vals[metrics[0]]:.4g})")
     return not any(live)
@@ -300,11 +312,13 @@ def _run_group(study, grp, metrics, prune, out, *, progress, export, compile_ahe
     vals = final[s]
     values = [vals[m] for m in metrics]
     if not all(math.isfinite(v) for v in values):
-      t.set_user_attr("error", f"objective not finite: {vals}")
+      why = ("no training episode ended (a longer budget or a shorter env.max_episode_s gives returns)"
+             if "return" in metrics else f"objective not finite ({vals})")
+      t.set_user_attr("error", why)
       study.tell(t, state=TrialState.FAIL)
-      log(f"[tune] trial {t.number} failed: objective not finite ({vals})")
+      log(f"[tune] trial {t.number} failed: {why}")
       continue
-    t.set_user_attr("heldout", vals)
+    t.set_user_attr("scores", vals)
     study.tell(t, values)
     log(f"[tune] trial {t.number} " + " ".join(f"{m} {v:.4g}" for m, v in zip(metrics, values)) + f" {point}")
 
@@ -326,7 +340,7 @@ def _write_results(study, metrics, out: str, log) -> dict:
   rows = [{"number": t.number, "state": t.state.name, "params": t.params,
            "values": dict(zip(metrics, t.values)) if t.values else None,
            "intermediate": {str(k): v for k, v in sorted(t.intermediate_values.items())},
-           "heldout": t.user_attrs.get("heldout"), "run_dir": t.user_attrs.get("run_dir"),
+           "scores": t.user_attrs.get("scores"), "run_dir": t.user_attrs.get("run_dir"),
            "program_members": t.user_attrs.get("program_members"), "error": t.user_attrs.get("error"),
            "best": t.number in best_numbers} for t in trials]
   with open(os.path.join(out, "tune.json"), "w") as f:
