@@ -200,8 +200,9 @@ def _study(spec: StudySpec, seed: int, log):
     study.tell(t.number, state=optuna.trial.TrialState.FAIL, skip_if_finished=True)
     study.enqueue_trial(t.params)
   if stale:
-    log(f"[tune] {len(stale)} trial(s) left running by an interrupted process ({', '.join(str(t.number) for t in stale)})"
-        " marked FAIL; their points are asked again")
+    numbers = ", ".join(str(t.number) for t in stale)
+    log(f"[tune] {len(stale)} trial(s) left running by an interrupted process ({numbers}) marked FAIL; their points "
+        "are asked again")
   return study
 
 
