@@ -4,6 +4,7 @@ trial left RUNNING by a killed process again, resumes from its storage, writes a
 runs multi-objective."""
 
 import json
+import math
 import os
 
 import pytest
@@ -118,7 +119,7 @@ def test_study_prunes_resumes_and_writes_the_best_config(tmp_path):
   assert iters(1) == iters(2) == 4 and iters(3) == iters(4) == 2    # batch (3, 4) stopped after its first call
   assert trials[2].value == trials[2].user_attrs["scores"]["return"] == trials[2].intermediate_values[1]
   returns = [json.loads(x)["return"] for x in open(out / "trial_2" / "metrics.jsonl")]
-  assert trials[2].value == pytest.approx([r for r in returns if r == r][-1])   # the latest finite training return
+  assert trials[2].value == pytest.approx([r for r in returns if math.isfinite(r)][-1])   # the latest finite training return
   best = config.load_config_file(str(out / "best_config.json"), config.TrainConfig())
   assert best.sg.lr == pytest.approx(trials[2].params["sg.lr"]) and best.num_envs == 8
   assert res["best"]["sg"]["lr"] == best.sg.lr
