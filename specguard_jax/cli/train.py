@@ -8,6 +8,7 @@
   python train.py --sweep seed=0,1,2 sg.lr=1e-4,3e-4 --steps 2000000   # many runs, one comparison table
   python train.py --set env.clearance=6 sg.lr=1e-4  # any config field, nested ones dotted (values as JSON)
   python train.py --vehicle rover --params rover.parm   # the vehicle's own autopilot parameters set the specs
+  python train.py --tune 32 --tune-space space.json --tune-batch 8   # an Optuna study (pip install '.[tune]')
   python train.py --devices 2 --envs 32768                     # data-parallel over 2 local devices (default: all)
   python train.py --coordinator host0:1234 --num-processes 2 --process-id 0   # multi-host (run on every host)
 
@@ -26,6 +27,7 @@ import time
 from specguard_jax.types import EKF_KERNELS, REWARDS, SENSOR_NAMES, TRAIN_DETECTORS, VARIANTS, VEHICLES
 
 DETERMINISTIC_XLA_FLAG = "--xla_gpu_deterministic_ops=true"
+TUNE_OBJECTIVES = ("svr", "rsr", "return", "svr+rsr")   # ppo/tune.py's OBJECTIVES (not imported: it needs JAX)
 
 
 def request_deterministic_gpu_ops(environ=os.environ):
@@ -129,6 +131,22 @@ def _parser() -> _Parser:
   ap.add_argument("--sequential-sweep", action="store_true",
                   help="run sweep members one after another (default: members differing only in seed / "
                        "sg|aa.{lr,ent_coef,clip_eps,vf_coef} run as one vmapped program spread over the devices)")
+  ap.add_argument("--tune", type=int, metavar="TRIALS",
+                  help="an Optuna study (pip install 'specguard-jax[tune]') until it holds TRIALS finished trials;\n"
+                       "rerun the same command to resume it (specguard_jax/ppo/tune.py)")
+  ap.add_argument("--tune-space", metavar="FILE",
+                  help='JSON {config key: distribution}, e.g. {"sg.lr": {"type": "log_uniform", "low": 1e-5, '
+                       '"high": 1e-3}};\ntypes: log_uniform, uniform, int, categorical')
+  ap.add_argument("--tune-batch", type=int, default=4, metavar="M",
+                  help="trials asked at once; those differing only in vmapped sweep keys train as one program "
+                       "(default 4)")
+  ap.add_argument("--tune-objective", default="svr", choices=tuple(TUNE_OBJECTIVES),
+                  help="held-out SVR (minimised), RSR or training return (maximised), or svr+rsr (multi-objective, "
+                       "no pruning)")
+  ap.add_argument("--tune-pruner", default="median", choices=("median", "halving", "none"),
+                  help="Optuna pruner fed the objective at every host call (default median)")
+  ap.add_argument("--study", metavar="URL", help="Optuna storage (default sqlite:///OUT/study.db)")
+  ap.add_argument("--study-name", default="specguard", help="the study's name in its storage (default specguard)")
   _config_flag(ap, "--ekf-kernel", key="env.ekf_kernel", choices=EKF_KERNELS,
                help="the EKF tick: lanes (one Mosaic GPU kernel, NVIDIA Hopper or newer), xla, or auto (default: "
                     "lanes where the GPU and jax support it, else xla)")
@@ -164,7 +182,7 @@ def _parser() -> _Parser:
   ap.add_argument("--compile-cache", metavar="DIR|off",
                   help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                        "~/.cache/specguard_jax/xla; off: none)")
-  ap.run_flags.update(steps="--steps", config="--config", set="--set", sweep="--sweep")
+  ap.run_flags.update(steps="--steps", config="--config", set="--set", sweep="--sweep", tune="--tune")
   return ap
 
 
@@ -294,6 +312,24 @@ def check_up_front(a, run_flags: dict) -> None:
     preflight.check_output_dir(a.out or "runs", "--out")
   if a.coordinator is not None:
     distributed.parse_address(a.coordinator)
+  if a.tune is not None:
+    _check_tune_flags(a)
+
+
+def _check_tune_flags(a) -> None:
+  """--tune's flag checks (one-line ValueError): a space file, positive counts, no --sweep, one process, optuna."""
+  if a.tune < 1 or a.tune_batch < 1:
+    raise ValueError(f"--tune ({a.tune}) and --tune-batch ({a.tune_batch}) must be >= 1")
+  if not a.tune_space:
+    raise ValueError("--tune needs --tune-space FILE (a JSON {config key: distribution})")
+  if a.sweep:
+    raise ValueError("--tune and --sweep exclude each other (put the swept keys in the --tune-space file)")
+  if a.coordinator is not None:
+    raise ValueError("--tune runs in one process (its devices share each batch); drop --coordinator")
+  try:
+    import optuna  # noqa: F401
+  except ImportError:
+    raise ValueError("--tune needs optuna: pip install 'specguard-jax[tune]' (or pip install optuna)") from None
 
 
 def _give_up(message: str) -> None:
@@ -322,6 +358,13 @@ def main(argv=None):
       cfg = build_config(a)
       check_user_files(cfg)
       out = a.out or os.path.join("runs", f"{cfg.vehicle}_{cfg.variant}_s{cfg.seed}_{time.strftime('%Y%m%d-%H%M%S')}")
+    if a.tune is not None:
+      from specguard_jax.ppo import tune
+      out = a.out or os.path.join("runs", f"tune_{a.study_name}")   # no time stamp: the same command resumes
+      dims = tune.load_space(a.tune_space, cfg)
+      spec = tune.StudySpec(trials=a.tune, batch=a.tune_batch, name=a.study_name, objective=a.tune_objective,
+                            pruner=a.tune_pruner,
+                            storage=a.study or f"sqlite:///{os.path.abspath(os.path.join(out, 'study.db'))}")
     if a.sweep:
       members = _sweep_members(cfg, a.sweep)
     else:
@@ -330,6 +373,10 @@ def main(argv=None):
     print(f"train.py: error: {e}", file=sys.stderr)
     return 2
   try:
+    if a.tune is not None:
+      tune.run_study(cfg, dims, spec, out, progress=not a.no_progress, export=not a.no_export,
+                     compile_ahead=a.compile_ahead, log=lambda m: print(m, flush=True))
+      return 0
     if members:
       _sweep(members, out, a)
       return 0

@@ -463,14 +463,18 @@ def _member_states(phase, cfgs, number, k_keys):
 
 
 def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, export: bool = True,
-                log=print, compile_ahead: bool | None = None) -> list:
+                log=print, compile_ahead: bool | None = None, on_call=None) -> list:
   """Train sweep members that differ only in SWEEP_DATA_KEYS as ONE compiled program per phase: the carry gets a
   leading member axis (vmapped), sharded over the devices (the largest device count dividing the member count);
   each member's hyperparameters live in its optimizer state (losses.HPARAMS), its seed in its keys. Each member
   gets out/<name>/ (config.json, metrics.jsonl, summary.json, policy export, held-out evaluation if asked); no
   checkpoints (a sweep restarts from scratch) and no early convergence stop (members run the full budget).
-  compile_ahead: as in `train` (phase 2 compiles while phase 1 compiles and trains). Returns one summary per
-  member."""
+  compile_ahead: as in `train` (phase 2 compiles while phase 1 compiles and trains). on_call: None or a function
+  called after every host call as on_call(step, last_call, sg_state, metrics) with step the host call's index over
+  both phases (0, 1, ...), last_call True on the run's final call, sg_state the members' SpecGuard states on the host
+  (leading member axis) and metrics each member's latest iteration's `derived` dict; a True return stops the
+  program there (the tuner's pruned members, ppo/tune.py): no later call or phase runs, and the summaries say
+  "stopped_early". Returns one summary per member."""
   import math as _math
   base = it.program_config(cfgs[0])
   for c in cfgs:
@@ -496,6 +500,8 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
   phases = [p for p, n in ((1, base.phase1_steps), (2, base.phase2_steps)) if n > 0]
   env_steps, wall, compile_s, last, per_phase = 0, 0.0, {}, [{} for _ in cfgs], [{} for _ in cfgs]
   sg_state = aa_state = None
+  stopped, step = False, 0
+  last_phase = phases[-1]
   log(f"[train] sweep of {S} members as one program per phase on {mesh.size} device(s)")
   ahead = ahead_lib.CompileAhead()
   if compile_ahead is None:
@@ -541,15 +547,24 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
         bar.show(number, (call + 1) * base.iters_per_call * base.steps_per_iter, total, sps,
                  float(np.nanmean([x["svr"] for x in last])), float(np.nanmean([x["rsr"] for x in last])),
                  float(np.nanmean([x["return"] for x in last])), force=call == calls - 1)
+        if on_call is not None:
+          final = number == last_phase and call == calls - 1
+          stopped = bool(on_call(step, final, distributed.to_host(carry.sg), [dict(x) for x in last])) and not final
+          step += 1
+          if stopped:
+            break
       if bar.tty and progress and main:
         print(file=sys.stderr)
       sg_state, aa_state = distributed.to_host((carry.sg, carry.aa))
+      if stopped:
+        log(f"[train] sweep stopped after {step} host call(s), as on_call asked")
+        break
     summaries = []
     for s, (c, d) in enumerate(zip(cfgs, dirs)):
       sg_s = jax.tree.map(lambda x: x[s], sg_state)
       summ = {"run_dir": os.path.abspath(d), "config": c.to_dict(), "env_steps": env_steps, "train_wall_s": wall,
               "compile_s": compile_s, "sweep_members": S, "devices": mesh.size,
-              "final_train_metrics": per_phase[s],
+              "final_train_metrics": per_phase[s], "stopped_early": stopped,
               "backend": jax.default_backend(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "date": time.strftime("%Y-%m-%d")}
       if main and export:
