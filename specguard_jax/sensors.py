@@ -80,13 +80,23 @@ class SensorConfig:
   # magnetometer heading. Error model (hard iron b, soft iron I + E on the horizontal field in units of the Earth
   # field's horizontal strength H): Vasconcelos et al., "Geometric approach to strapdown magnetometer calibration in
   # sensor frame", IEEE TAES 47(2), 2011; Kok & Schön, "Magnetometer calibration using inertial sensors", IEEE Sensors
-  # J. 16(14), 2016. Uncalibrated, on-board hard iron is of the order of H itself; the σ here are the residuals after
-  # the usual field calibration (PX4 / ArduPilot compass calibration fits this ellipsoid), an assumed few percent of H
-  # (1 % of H ~ 0.6 deg of heading error), not a figure from those papers.
+  # J. 16(14), 2016. Uncalibrated, on-board hard iron is of the order of H itself, tens of degrees of heading error; no
+  # autopilot flies that: PX4 refuses to arm without a compass calibration and EKF2 learns the body field in flight,
+  # ArduPilot fits offsets, diagonals and off-diagonals (COMPASS_OFS*, COMPASS_DIA*, COMPASS_ODI*) before flight and
+  # can learn offsets in flight. So b and E are the RESIDUALS after that calibration, sized by the heading accuracy
+  # quoted for a hard- and soft-iron compensated strapdown compass, about 1 deg RMS (Caruso, "Applications of magnetic
+  # sensors for low cost compass systems", IEEE PLANS 2000; Gebre-Egziabher et al., "Calibration of strapdown
+  # magnetometers in magnetic field domain", J. Aerosp. Eng. 19(2), 2006). It is also what ArduPilot's fit accepts:
+  # RMS residual <= 16 mGauss (COMPASS_CAL_FIT default) over >= 300 samples (CompassCalibrator), so an offset's
+  # standard error is ~16 sqrt(3 / 300) = 1.6 mGauss, ~0.01 H for H ~ 0.2 Gauss at mid latitudes (WMM). The heading
+  # error of small b and E is b_perp + E12 cos 2psi + (E22 - E11) / 2 sin 2psi (psi the heading): RMS over headings and
+  # episodes sqrt(σ_b^2 + 0.75 σ_E^2), 0.0173 rad (0.99 deg) with the σ below; hard iron takes the larger share (offsets
+  # drift with temperature and in-flight currents, the fitted scale factors do not). The EKF has no magnetometer-bias
+  # state (ekf.py: the heading is fused like EKF2's yaw fusion): these residuals reach its heading unestimated.
   mag_rate: float = 50.0
   mag_sigma: float = 0.03  # rad, white heading noise
-  mag_hard_iron_sigma: float = 0.05  # H, σ per horizontal axis of the residual hard-iron offset (per episode)
-  mag_soft_iron_sigma: float = 0.03  # σ of each entry of the symmetric residual soft-iron error E (per episode)
+  mag_hard_iron_sigma: float = 0.015  # H, σ per horizontal axis of the residual hard-iron offset (per episode)
+  mag_soft_iron_sigma: float = 0.01  # σ of each entry of the symmetric residual soft-iron error E (per episode)
   # Local disturbance near structures (steel frames, rebar, poles, vehicles): a dipole's field falls off as 1/d^3.
   # Ferrous structures perturb the field by tens of µT within ~1 m (Afzal, Renaudin & Lachapelle, "Magnetic field
   # based heading estimation for pedestrian navigation environments", IPIN 2011), i.e. of the order of H (~20 µT at

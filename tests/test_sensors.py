@@ -316,6 +316,22 @@ def test_mag_hard_soft_iron_heading_error_curve():
                                                                               jnp.zeros(2)))(yaws)) - yaws, atol=1e-5)
 
 
+def test_mag_default_is_a_calibrated_compass_residual():
+  """The default hard / soft iron are residuals after a compass calibration: over episodes and headings the heading
+  error's RMS is sqrt(σ_b^2 + 0.75 σ_E^2) (sensors.SensorConfig) and about 1 deg, the accuracy quoted for a compensated
+  strapdown compass; an uncalibrated compass (hard iron ~H) would be tens of degrees."""
+  base = SensorConfig.drone()
+  cfg = dataclasses.replace(base.noiseless(), mag_hard_iron_sigma=base.mag_hard_iron_sigma,
+                            mag_soft_iron_sigma=base.mag_soft_iron_sigma)
+  st, _ = _episodes(cfg, _truth(), jax.random.PRNGKey(16))
+  yaws = jax.random.uniform(jax.random.PRNGKey(17), (_N_EP,), minval=-np.pi, maxval=np.pi)
+  head = jax.jit(jax.vmap(mag_heading, in_axes=(0, 0, 0, None)))(yaws, st.mag_hard, st.mag_soft, jnp.zeros(2))
+  err = (np.asarray(head) - np.asarray(yaws) + np.pi) % (2 * np.pi) - np.pi
+  expect = math.hypot(base.mag_hard_iron_sigma, math.sqrt(0.75) * base.mag_soft_iron_sigma)
+  assert abs(np.sqrt(np.mean(err ** 2)) / expect - 1.0) < 0.06, (np.sqrt(np.mean(err ** 2)), expect)
+  assert math.radians(0.5) < expect < math.radians(2.0), math.degrees(expect)
+
+
 def test_mag_disturbance_falls_off_with_distance():
   """A world-fixed disturbance δ (H) at distance d from a structure: heading error -atan2(δ_y, 1 + δ_x) with
   δ = mag_dist (mag_dist_ref / d)^3, i.e. 8x smaller per doubling of the distance; nothing far from structures."""
