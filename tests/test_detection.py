@@ -123,10 +123,6 @@ def test_single_attack_mask_names_only_that_sensor(run, sensor):
   assert named == [sensor], named
 
 
-@pytest.mark.xfail(reason="the rule 'GPS agrees with the flow -> blame the accelerometer' compares GPS and flow "
-                   "velocities, which no longer agree closely with a per-episode flow scale error (5 %) and a "
-                   "u-blox-class GPS error (sensors.SensorConfig): detection/detector.py's diagnosis needs a tolerance "
-                   "for them", strict=False)
 def test_horizontal_accel_bias_blamed_on_the_accelerometer(run):
   """A horizontal accelerometer bias shows in the GPS AND flow velocity innovations (the GPS agreeing with the flow):
   the accelerometer is blamed, not the GPS (reconstruction would otherwise dead-reckon on the biased accelerometer)."""
