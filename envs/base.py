@@ -447,16 +447,21 @@ class RAVEnv(Env):
     dr = self._sample_domain(world, k_dr)
     data, truth = self._vehicle_init(mission, dr, k_phys)
     phys = PhysicsState.of(data)
-    sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens)
+    # The nearest obstacle's distance at the true position, which the magnetometer's local disturbance needs
+    # (sim["obstacle_distance"]; `step` refreshes it from its collision queries).
+    d_obs = jnp.minimum(worlds_lib.obstacle_sdf(world, self._query_pos(truth.pos)), 1e3)
+    sens_state = sensors_lib.init_sensors(self.sensor_cfg, truth, k_sens, surface=world.surface,
+                                          obstacle_distance=d_obs)
     k_sens2, k_run = jax.random.split(k_run)
-    sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt)
+    sens_state, readings = sensors_lib.sense(self.sensor_cfg, sens_state, truth, k_sens2, self.config.tick_dt,
+                                             obstacle_distance=d_obs)
     # P in the layout of the EKF's kernel
     ekf = ekf_lib.ekf_init(self.ekf_cfg, readings, p_layout="packed" if self._ekf_kernel == "lanes" else "square")
     nav = nav_lib.nav_init(mission)
     sim = {
         "truth": truth, "sensors": sens_state, "readings": readings, "ekf": ekf, "nav": nav,
         "ctrl": self._vehicle_control_init(), "dr": dr, "gust": jnp.zeros(3),
-        "vehicle": self._vehicle_extra_init(),
+        "vehicle": self._vehicle_extra_init(), "obstacle_distance": d_obs,
     }
     if self.config.detector != "none":
       sim["det"] = detection_lib.detector_init(self.det_cfg)
@@ -527,6 +532,10 @@ class RAVEnv(Env):
       d_obs, d_est, g_est = worlds_lib.obstacle_queries(world, jax.vmap(self._query_pos)(tick_pos),
                                                         self._query_pos(est_pos))
       min_obs = jnp.minimum(jnp.min(d_obs), 1e3)
+    # The magnetometer's distance to structures for the next step's ticks: this step's last tick's, already at hand,
+    # at most one step (0.1 s, < 1.2 m at cruise speed) stale; an SDF per tick (or per magnetometer sample) would
+    # add a pass over the world's obstacles to every tick for a disturbance that varies over metres.
+    sim = dict(sim, obstacle_distance=jnp.minimum(d_obs[-1], 1e3))
 
     # NaN physics never leaves the env: the signals (STL monitor, episode record) fall back to the previous step's.
     signals = tree_where(finite, self._signals(world, mission, truth, nav, obstacle=d_obs[-1]), info["signals"])
@@ -617,7 +626,8 @@ class RAVEnv(Env):
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
     with jax.named_scope("sensors"):
-      sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt)
+      sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt,
+                                               obstacle_distance=sim["obstacle_distance"])
       readings = self._attack(readings, sim, attack)
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses

@@ -25,6 +25,7 @@ from envs import geofence as geofence_lib
 from envs import geometry as geo
 from envs.missions import Mission, UniformPool, final_waypoint, landing_point, mission_leg, \
   path_polyline, takeoff_point
+from specguard_jax.sensors import SURFACES
 
 MAX_CYLINDERS = 24
 MAX_BOXES = 24
@@ -56,6 +57,7 @@ class World:
   ceiling: [] max allowed altitude (NO_CEILING = 1e3 outdoors).
   wind_mean: [3] mean wind velocity (horizontal), m/s; gust_std: [] std of gusts per axis, m/s.
   preset_id: [] int32 index into PRESET_NAMES (-1: custom preset).
+  surface: [] int32 index into specguard_jax.sensors.SURFACES, the ground's texture (optical-flow dropouts).
   geofence: the mission's own geofence zones (envs.geofence; a QGC plan's geoFence, a parameter file's home fence);
     empty (zero-size arrays, no cost) for generated missions.
   rally_points: [R, 3] the mission's rally points (a QGC plan's rallyPoints), m, where recovery controllers may
@@ -76,6 +78,7 @@ class World:
   wind_mean: jnp.ndarray
   gust_std: jnp.ndarray
   preset_id: jnp.ndarray
+  surface: jnp.ndarray
   geofence: geofence_lib.Geofence = struct.field(default_factory=geofence_lib.empty_geofence)
   rally_points: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((0, 3), jnp.float32))
 
@@ -109,6 +112,7 @@ class WorldPreset:
   boundary_margin: the operating rectangle is the path's bounding box grown by U(margin) on each side.
   ceiling: (low, high) or None; raised to the path top + clearance if lower.
   wind_speed: mean horizontal wind magnitude range (direction uniform); gust_std: gust std range, m/s.
+  surface: the ground's texture under the routes, one of specguard_jax.sensors.SURFACES (optical-flow dropouts).
   """
 
   name: str
@@ -126,8 +130,11 @@ class WorldPreset:
   ceiling: tuple | None = None
   wind_speed: tuple = (0.0, 3.0)
   gust_std: tuple = (0.0, 0.5)
+  surface: str = "grass"
 
   def __post_init__(self):
+    if self.surface not in SURFACES:
+      raise ValueError(f"{self.name}: surface must be one of {SURFACES}, got {self.surface!r}")
     if self.geofence not in GEOFENCE_KINDS:
       raise ValueError(f"{self.name}: geofence must be one of {GEOFENCE_KINDS}, got {self.geofence!r}")
     for shape in ("cylinder", "box"):
@@ -162,57 +169,67 @@ PRESETS = {p.name: p for p in (
   WorldPreset(
     "suburban_residential", "A", "houses and streets; trees, power lines, electric poles; private properties fenced",
     (_TREE, _POLE, _PYLON, _box("house", 3.0, (4.0, 8.0), (4.0, 7.0), (6.0, 10.0))),
-    geofence="properties", n_fences=(3, 6), wind_speed=(0.0, 3.0), gust_std=(0.0, 0.5)),
+    geofence="properties", n_fences=(3, 6), wind_speed=(0.0, 3.0), gust_std=(0.0, 0.5),
+    surface="grass"),
   WorldPreset(
     "suburban_streets", "B", "busier suburban commercial streets; trees, electric poles, power lines",
     (dataclasses.replace(_TREE, density=4.0), dataclasses.replace(_POLE, density=3.0),
      dataclasses.replace(_PYLON, density=0.6), _box("shop", 3.0, (6.0, 12.0), (5.0, 10.0), (5.0, 12.0))),
-    geofence="properties", n_fences=(3, 6), wind_speed=(0.0, 3.0), gust_std=(0.0, 0.5)),
+    geofence="properties", n_fences=(3, 6), wind_speed=(0.0, 3.0), gust_std=(0.0, 0.5),
+    surface="asphalt"),
   WorldPreset(
     "urban_city_areas", "C", "multi-storey buildings, commercial complexes; trees, streetlights, traffic signals",
     (_cyl("tree", 3.0, (1.5, 3.0), (6.0, 12.0)), _STREETLIGHT, _SIGNAL,
      _box("building", 4.0, (8.0, 20.0), (8.0, 15.0), (15.0, 45.0))),
-    geofence="properties", n_fences=(4, 6), wind_speed=(0.0, 4.0), gust_std=(0.2, 0.8)),
+    geofence="properties", n_fences=(4, 6), wind_speed=(0.0, 4.0), gust_std=(0.2, 0.8),
+    surface="concrete"),
   WorldPreset(
     "urban_city_streets", "D", "narrow busy streets; trees, streetlights, shop signs, buildings",
     (_cyl("tree", 3.0, (1.5, 3.0), (6.0, 12.0)), dataclasses.replace(_STREETLIGHT, density=5.0),
      _box("shop sign", 3.0, (0.5, 2.0), (0.1, 0.4), (4.0, 8.0)),
      _box("building", 5.0, (6.0, 15.0), (6.0, 12.0), (15.0, 40.0))),
-    geofence="properties", n_fences=(4, 6), corridor=25.0, wind_speed=(0.0, 4.0), gust_std=(0.3, 1.0)),
+    geofence="properties", n_fences=(4, 6), corridor=25.0, wind_speed=(0.0, 4.0), gust_std=(0.3, 1.0),
+    surface="asphalt"),
   WorldPreset(
     "urban_park", "E", "park paths and amenities; trees, benches, playground equipment",
     (_cyl("tree", 10.0, (2.0, 5.0), (8.0, 20.0)), _cyl("lamp post", 2.0, (0.1, 0.2), (4.0, 6.0)), _BENCH,
      _box("playground", 1.0, (2.0, 6.0), (2.0, 5.0), (2.0, 5.0))),
-    geofence="boundary", yaw_jitter_deg=180.0, wind_speed=(0.0, 4.0), gust_std=(0.0, 0.6)),
+    geofence="boundary", yaw_jitter_deg=180.0, wind_speed=(0.0, 4.0), gust_std=(0.0, 0.6),
+    surface="grass"),
   WorldPreset(
     "urban_green_areas", "F", "streets cutting through parks; trees, benches, streetlights, traffic lights",
     (_cyl("tree", 7.0, (2.0, 5.0), (8.0, 20.0)), dataclasses.replace(_STREETLIGHT, density=2.0),
      dataclasses.replace(_SIGNAL, name="traffic light", density=1.0), dataclasses.replace(_BENCH, density=2.0)),
-    geofence="boundary", yaw_jitter_deg=90.0, wind_speed=(0.0, 4.0), gust_std=(0.1, 0.7)),
+    geofence="boundary", yaw_jitter_deg=90.0, wind_speed=(0.0, 4.0), gust_std=(0.1, 0.7),
+    surface="grass"),
   WorldPreset(
     "urban_high_rise", "G", "downtown high-rises; construction cranes (mast), traffic poles, light posts",
     (_cyl("crane mast", 0.5, (2.0, 3.0), (40.0, 80.0)), _cyl("traffic pole", 3.0, (0.2, 0.3), (5.0, 8.0)),
      _cyl("light post", 3.0, (0.15, 0.25), (8.0, 12.0)),
      _box("high-rise", 4.0, (10.0, 25.0), (10.0, 20.0), (60.0, 150.0))),
-    geofence="properties", n_fences=(4, 6), wind_speed=(1.0, 6.0), gust_std=(0.5, 1.5)),
+    geofence="properties", n_fences=(4, 6), wind_speed=(1.0, 6.0), gust_std=(0.5, 1.5),
+    surface="concrete"),
   WorldPreset(
     "manufacturing_plant", "H", "indoor plant; pillars, machinery, storage containers, conveyor belts",
     (_cyl("pillar", 3.0, (0.3, 0.6), (40.0, 40.0)), _box("machinery", 6.0, (1.5, 5.0), (1.0, 4.0), (2.0, 6.0)),
      _box("container", 4.0, (3.0, 6.1), (1.2, 1.25), (2.6, 5.2)),
      _box("conveyor belt", 2.0, (8.0, 20.0), (0.5, 1.0), (1.0, 1.5))),
     geofence="indoor", yaw_jitter_deg=5.0, boundary_margin=(18.0, 25.0), ceiling=(25.0, 30.0),
-    wind_speed=(0.0, 0.0), gust_std=(0.0, 0.0)),
+    wind_speed=(0.0, 0.0), gust_std=(0.0, 0.0),
+    surface="indoor_floor"),
   WorldPreset(
     "open_mountain", "I", "mountainous terrain; rocks, boulders, fences, sparse trees; windy",
     (_cyl("rock", 3.0, (1.0, 4.0), (1.0, 6.0)), _cyl("tree", 1.0, (1.5, 3.0), (5.0, 12.0)),
      _box("boulder", 2.0, (2.0, 6.0), (2.0, 5.0), (2.0, 10.0)),
      _box("fence", 1.0, (10.0, 30.0), (0.05, 0.15), (1.2, 2.0))),
-    geofence="boundary", yaw_jitter_deg=180.0, wind_speed=(3.0, 8.0), gust_std=(1.0, 2.5)),
+    geofence="boundary", yaw_jitter_deg=180.0, wind_speed=(3.0, 8.0), gust_std=(1.0, 2.5),
+    surface="snow"),
   WorldPreset(
     "open_beach", "J", "coastline; power lines on electric posts, pylons, rocky cliffs; windy",
     (_cyl("electric post", 3.0, (0.15, 0.3), (8.0, 12.0)), _cyl("pylon", 0.5, (2.0, 3.0), (25.0, 40.0)),
      _cyl("rock", 1.0, (1.0, 3.0), (1.0, 4.0)), _box("rocky cliff", 1.0, (10.0, 30.0), (5.0, 15.0), (15.0, 40.0))),
-    geofence="boundary", yaw_jitter_deg=30.0, wind_speed=(3.0, 7.0), gust_std=(0.8, 2.0)),
+    geofence="boundary", yaw_jitter_deg=30.0, wind_speed=(3.0, 7.0), gust_std=(0.8, 2.0),
+    surface="sand"),
 )}
 PRESET_NAMES = tuple(PRESETS)
 """The 10 world names; index = World.preset_id."""
@@ -246,6 +263,7 @@ class _PresetTable:
   ceiling: np.ndarray       # [P, 2] (NO_CEILING if none)
   wind_speed: np.ndarray    # [P, 2]
   gust_std: np.ndarray      # [P, 2]
+  surface: np.ndarray       # [P] int32 index into SURFACES
 
 
 def _preset_table(presets) -> _PresetTable:
@@ -271,7 +289,8 @@ def _preset_table(presets) -> _PresetTable:
       fence_along=np.array(p.fence_half_along, np.float32), fence_across=np.array(p.fence_half_across, np.float32),
       fence_gap=np.array(p.fence_gap, np.float32), boundary_margin=np.array(p.boundary_margin, np.float32),
       ceiling=np.array(p.ceiling if p.ceiling is not None else (NO_CEILING, NO_CEILING), np.float32),
-      wind_speed=np.array(p.wind_speed, np.float32), gust_std=np.array(p.gust_std, np.float32)))
+      wind_speed=np.array(p.wind_speed, np.float32), gust_std=np.array(p.gust_std, np.float32),
+      surface=np.int32(SURFACES.index(p.surface))))
   return _PresetTable(**{k: np.stack([r[k] for r in rows]) for k in rows[0]})
 
 
@@ -444,11 +463,11 @@ def generate_world(preset, mission: Mission, rng: jax.Array, clearance: float = 
 
   return make_world(cylinders=cylinders, cylinder_mask=cylinder_mask, boxes=boxes, box_mask=box_mask, fences=fences,
                     fence_mask=fence_mask, boundary=boundary, boundary_on=boundary_on, ceiling=ceiling,
-                    wind_mean=wind_mean, gust_std=gust_std, preset_id=preset_id)
+                    wind_mean=wind_mean, gust_std=gust_std, preset_id=preset_id, surface=p.surface)
 
 
 def make_world(cylinders, cylinder_mask, boxes, box_mask, fences, fence_mask, boundary, boundary_on, ceiling, wind_mean,
-               gust_std, preset_id=-1) -> World:
+               gust_std, preset_id=-1, surface=0) -> World:
   """A World from its obstacles, fences, limits and weather (shapes and units: World), with the derived fields
   (box_axes, fence_axes) computed from them and every field cast to its dtype."""
   f32 = lambda x: jnp.asarray(x, jnp.float32)
@@ -458,7 +477,7 @@ def make_world(cylinders, cylinder_mask, boxes, box_mask, fences, fence_mask, bo
     box_mask=jnp.asarray(box_mask, bool), fences=fences, fence_mask=jnp.asarray(fence_mask, bool),
     box_axes=geo.prism_axes(boxes), fence_axes=geo.prism_axes(fences), boundary=f32(boundary),
     boundary_on=jnp.asarray(boundary_on, bool), ceiling=f32(ceiling), wind_mean=f32(wind_mean), gust_std=f32(gust_std),
-    preset_id=jnp.asarray(preset_id, jnp.int32))
+    preset_id=jnp.asarray(preset_id, jnp.int32), surface=jnp.asarray(surface, jnp.int32))
 
 
 # ----------------------------------------------------------------------------------------------------------------

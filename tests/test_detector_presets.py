@@ -95,7 +95,8 @@ def test_loader_errors_are_one_line(tmp_path):
 def test_no_false_alarm_on_held_out_missions(vehicle):
   """The env's default detector (the preset, see test_env_default_detector_is_the_preset) replayed over the env's own
   ticks (detection.traces) of N_FREE held-out attack-free missions flown whole (trainer worlds, domain randomisation
-  on): no alarm. One extra mission under an overt GPS spoof (from 25 s) is flagged within 1 s and blamed on the GPS.
+  on): no alarm. One extra mission under an overt GPS spoof (from 25 s) is flagged within 2 s (the GPS gates are as
+  wide as a u-blox-class error needs) and blamed on the GPS.
   (Measured in the env on 256 held-out missions of 60-120 s per vehicle: 0 missions with a false alarm.)"""
   mc = (MissionConfig.drone if vehicle == "drone" else MissionConfig.rover)(min_duration_s=50.0, max_duration_s=70.0)
   env = envs.make(vehicle, mission=mc, worlds=TRAIN_WORLDS)
@@ -112,5 +113,5 @@ def test_no_false_alarm_on_held_out_missions(vehicle):
   alarm = out["alarm"] & valid
   assert not alarm[:N_FREE].any(), np.nonzero(alarm[:N_FREE].any(-1))   # no false alarm
   first = np.nonzero(alarm[N_FREE])[0]
-  assert first.size and ONSET <= t[N_FREE, first[0]] < ONSET + 1.0, t[N_FREE, first[:1]]
+  assert first.size and ONSET <= t[N_FREE, first[0]] < ONSET + 2.0, t[N_FREE, first[:1]]
   assert out["diagnosis"][N_FREE, first[0] + 10] == attacks.SENSOR_NAMES.index("gps")

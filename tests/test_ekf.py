@@ -81,7 +81,8 @@ TRAJ = {  # x0, y0, z0, radius, omega, vx, vz, yaw0, yaw_follow
 def simulate(scfg, ecfg, truth, gps_offset, rng):
   """Sensors + EKF over a truth trajectory [n]; gps_offset [n, 3] is added to the GPS position (spoofing).
 
-  Tick 0 initialises the filter; outputs are for ticks 1..n-1.
+  Tick 0 initialises the filter; outputs are for ticks 1..n-1. gps_err: the GPS's slowly correlated position error
+  (sensors.SensorState.gps_drift, m), which no filter fusing that GPS can see.
   """
   n = truth.pos.shape[0]
   t0 = jax.tree.map(lambda x: x[0], truth)
@@ -97,7 +98,7 @@ def simulate(scfg, ecfg, truth, gps_offset, rng):
     r = r.replace(gps_pos=r.gps_pos + off)
     ekf = ekf_step(ecfg, ekf, r, DT)
     out = dict(pos=ekf.pos, vel=ekf.vel, euler=ekf_euler(ekf), rates=ekf_body_rates(ekf, r), ratio=ekf.test_ratio,
-               accepted=ekf.accepted, fresh=ekf.fresh, reset=ekf.reset, std=ekf_std(ekf))
+               accepted=ekf.accepted, fresh=ekf.fresh, reset=ekf.reset, std=ekf_std(ekf), gps_err=ss.gps_drift)
     return (ss, ekf), out
 
   rest = jax.tree.map(lambda x: x[1:], truth)
@@ -155,11 +156,21 @@ def _np_euler(q):
                    np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))], -1)
 
 
+def _gps_ref(truth, out):
+  """[N-1, 3] the position the EKF can know: horizontally, the truth + the GPS's slowly correlated error (metres,
+  τ 60 s: sensors.SensorConfig.gps_drift_*), which nothing else in the sensor suite observes; vertically the truth
+  (the height follows the barometer, EKF2's default height source). Position accuracy is judged against it."""
+  ref = np.asarray(truth.pos)[1:].copy()
+  ref[:, :2] += np.asarray(out["gps_err"])[:, :2]
+  return ref
+
+
 def _errors(truth, out, settle=SETTLE):
-  """RMS errors after `settle` ticks: position (m, 3-D), velocity (m/s, 3-D), tilt (deg, roll/pitch, and max),
-  yaw (deg), body rates (rad/s, 3-D)."""
+  """RMS errors after `settle` ticks: position (m, 3-D, to the GPS reference `_gps_ref`), velocity (m/s, 3-D), tilt
+  (deg, roll/pitch, and max), yaw (deg), body rates (rad/s, 3-D)."""
   s = slice(settle, None)
-  tp, tv, tq, tw = (np.asarray(x)[1:][s] for x in (truth.pos, truth.vel, truth.quat, truth.ang_vel))
+  tv, tq, tw = (np.asarray(x)[1:][s] for x in (truth.vel, truth.quat, truth.ang_vel))
+  tp = _gps_ref(truth, out)[s]
   de = np.asarray(out["euler"])[s] - _np_euler(tq)
   de = np.degrees((de + np.pi) % (2 * np.pi) - np.pi)
   rms = lambda x: float(np.sqrt(np.mean(np.sum(np.square(x), axis=-1))))
@@ -185,7 +196,9 @@ def test_drone_tracks_truth(drone, name):
   for i, ch in enumerate(CHANNELS):
     if ch != "odom":
       assert fresh[:, i].sum() > 100, ch
-      assert acc[fresh[:, i], i].mean() > 0.97, ch
+      # The GPS height's slowly correlated error (metres, sensors.SensorConfig.gps_drift_sigma_v, τ 60 s) walks out of
+      # its gate around the barometer-held height for long stretches: most samples, not 97 %, pass.
+      assert acc[fresh[:, i], i].mean() > (0.5 if ch == "gps_pos_z" else 0.97), ch
   assert fresh[:, CH["odom"]].sum() == 0
   assert not np.any(out["reset"])
   # the filter's position σ is sane
@@ -198,7 +211,9 @@ def test_rover_tracks_truth():
   assert abs(float(jnp.linalg.norm(truth.vel[-1])) - 3.0) < 0.01
   out = jax.tree.map(np.asarray, simulate(*ROVER, truth, jnp.zeros((N, 3)), jax.random.PRNGKey(1)))
   e = _errors(truth, out)
-  assert e["pos"] < 1.0 and e["vel"] < 0.3 and e["tilt"] < 2.0 and e["yaw"] < 5.0, e
+  # (1.5 m: the rover's GPS height passes its gate more often than a flying drone's, so part of the GPS's vertical
+  # correlated error, metres, reaches its height beside the barometer's)
+  assert e["pos"] < 1.5 and e["vel"] < 0.3 and e["tilt"] < 2.0 and e["yaw"] < 5.0, e
   fresh = out["fresh"] > 0
   assert fresh[:, CH["odom"]].sum() > 1000 and fresh[:, CH["flow_x"]].sum() == 0
   assert out["accepted"][SETTLE:][fresh[SETTLE:, CH["odom"]], CH["odom"]].mean() > 0.97
@@ -207,7 +222,7 @@ def test_rover_tracks_truth():
 def test_gps_jump_rejected_then_reset(drone):
   truth, out = (_pick(x, IDX["jump"]) for x in drone)
   tt = np.arange(1, N) * DT
-  ex = out["pos"][:, 0] - truth.pos[1:, 0]
+  ex = out["pos"][:, 0] - _gps_ref(truth, out)[:, 0]    # the spoofing offset is on top of the GPS's own error
   acc = out["accepted"][:, CH["gps_pos_x"]]
   ratio = out["ratio"][:, CH["gps_pos_x"]]
   reset_t = tt[out["reset"] > 0]
@@ -228,7 +243,7 @@ def test_gps_jump_rejected_then_reset(drone):
 def test_slow_gps_ramp_passes_gate_and_drags(drone):
   truth, out = (_pick(x, IDX["ramp"]) for x in drone)
   tt = np.arange(1, N) * DT
-  ex = out["pos"][:, 0] - truth.pos[1:, 0]
+  ex = out["pos"][:, 0] - _gps_ref(truth, out)[:, 0]    # the spoofing offset is on top of the GPS's own error
   fresh = out["fresh"][:, CH["gps_pos_x"]] > 0
   during = (tt > T_ATTACK) & fresh
   assert np.all(out["accepted"][during, CH["gps_pos_x"]] == 1.0)

@@ -148,9 +148,12 @@ def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env)
   m0 = jax.tree.map(lambda x: np.asarray(x[0]), state.info["mission"])
   last = m0.waypoints[m0.n_waypoints - 1]
   assert np.linalg.norm((pos[-1] - last)[:2]) < 5.0
-  # EKF stayed close to the truth on the way.
+  # EKF stayed close to the truth on the way: within the GPS's slowly correlated error (metres, stationary σ per axis
+  # in SensorConfig, which the EKF follows) of it, plus the EKF's own 1.5 m.
+  sc = env.sensor_cfg
+  gps_sigma = np.sqrt(2 * sc.gps_drift_sigma_h ** 2 + sc.gps_drift_sigma_v ** 2)     # m, 3-D
   assert np.sqrt(np.mean(np.sum((np.asarray(traj["est"]) - np.asarray(traj["pos"]))[np.asarray(traj["valid"])] ** 2,
-                                axis=-1))) < 1.5
+                                axis=-1))) < 1.5 + 2.5 * gps_sigma
 
 
 def test_reset_is_deterministic_and_signals_consistent(drone_env, drone_reset):

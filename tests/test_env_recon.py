@@ -51,7 +51,10 @@ def test_reconstructed_observation_stays_near_truth_under_gps_spoof(flight):
     assert m.sum() > 100
     err_obs = np.linalg.norm((tr["obs_pos"][:, b] - tr["true_pos"][:, b])[:, :2], axis=-1)[m]
     err_ekf = np.linalg.norm((tr["ekf_pos"][:, b] - tr["true_pos"][:, b])[:, :2], axis=-1)[m]
-    assert err_obs.max() < 4.0, err_obs.max()          # reconstructed: bounded
+    # reconstructed: bounded, within half the spoof's bias. Not within a metre or two: it starts from the estimate at
+    # onset (the GPS's metres of correlated error) and dead-reckons ~200 m on optical flow with a per-episode scale
+    # error (sensors.SensorConfig.flow_scale_sigma, 5 %), which drifts metres.
+    assert err_obs.max() < 0.5 * BIAS, err_obs.max()
     assert np.median(err_ekf) > 8.0, np.median(err_ekf)   # the spoofed EKF is dragged away (bias 20 m)
 
 
