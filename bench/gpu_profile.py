@@ -293,7 +293,7 @@ def main(argv=None):
                              network_dtype=a.network_dtype).with_env(ekf_kernel=a.ekf_kernel).validate()
     ph = iteration.make_phase(cfg, a.phase, distributed.make_mesh(1))
     k = jax.random.PRNGKey(0)
-    sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
+    sg = losses.with_hparams(ph.sg.init(k, cfg.n_obs), cfg.sg)
     aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
     carry = ph.init(k, sg, aa)
     t = time.perf_counter()

@@ -49,7 +49,7 @@ def _cfg(a, envs, devices, **kw):
 def _init_args(ph, cfg):
   """(key, SG state, AA state) replicated over the phase's mesh: the arguments of ph.init."""
   k = jax.random.PRNGKey(cfg.seed)
-  sg = losses.with_hparams(ph.sg.init(k, 24), cfg.sg)
+  sg = losses.with_hparams(ph.sg.init(k, cfg.n_obs), cfg.sg)
   aa = losses.with_hparams(ph.aa.init(k, attacker.N_OBS), cfg.aa)
   return distributed.replicate((k, sg, aa), ph.mesh)
 

@@ -240,8 +240,8 @@ def test_one_and_four_devices_train_the_same_params(dp, runs):
 def test_env_state_is_sharded_over_the_devices(dp):
   n1, shards1 = dp["sharding_d1"]
   n4, shards4 = dp["sharding_d4"]
-  assert n1 == 1 and shards1 == [[4, 2, 24]]
-  assert n4 == 4 and shards4 == [[1, 2, 24]] * 4   # one env group of 2 envs per device
+  assert n1 == 1 and shards1 == [[4, 2, 44]]        # observation [G, B/G, 44]: the recovery layout
+  assert n4 == 4 and shards4 == [[1, 2, 44]] * 4   # one env group of 2 envs per device
   assert dp["b1_restored_devices"] == 4            # a 1-device checkpoint restored onto 4 devices
 
 
@@ -275,7 +275,9 @@ def test_two_processes_with_jax_distributed_train_like_one(runs):
   assert len(p0.files) == len(ref.files) > 0
   for k in ref.files:
     np.testing.assert_array_equal(p0[k], p1[k])                    # both processes hold the same replicas
-    np.testing.assert_allclose(p0[k], ref[k], rtol=0, atol=1e-4)   # and they equal the single-process run
+    # and they equal the single-process run to float rounding: the gradient is reduced in another order, and the
+    # range-ring inputs (up to 20 m) make the first layer's rows for them the largest (seen: 2.6e-4 on one weight)
+    np.testing.assert_allclose(p0[k], ref[k], rtol=0, atol=5e-4)
   lines = (mh / "run" / "metrics.jsonl").read_text().splitlines()
   assert len(lines) == 2 and json.loads(lines[1])["aa_loss"] != 0   # only process 0 logged; both agents updated
   assert (mh / "run" / "policy.onnx").exists()                      # process 0 exported
