@@ -126,13 +126,16 @@ def plan(cfg: AttackerConfig, adv: dict, raw, t, dt: float):
 
 
 class AttackerEnv(Wrapper):
-  """Unbatched wrapper: step(state, action) with action = concat(SpecGuard action [3], attacker raw [10])."""
+  """Unbatched wrapper: step(state, action) with action = concat(SpecGuard action [3], attacker raw [10]).
+  mix: optional scripted campaigns (ppo.campaign_mix.CampaignMix) that replace the agent's attack in a share of the
+  episodes (info['scripted'] [] bool, drawn at reset with the attack it flies, info['scripted_attack'])."""
 
-  def __init__(self, env, cfg: AttackerConfig, speeds):
+  def __init__(self, env, cfg: AttackerConfig, speeds, mix=None):
     super().__init__(env)
     self.cfg = cfg
     self.speeds = np.asarray(speeds, np.float32)
     self.allowed = np.array([s in cfg.sensors for s in SENSOR_NAMES])
+    self.mix = mix if mix is not None and mix.active else None
 
   @property
   def action_size(self) -> int:
@@ -141,7 +144,11 @@ class AttackerEnv(Wrapper):
   def reset(self, rng):
     s = self.env.reset(rng)
     none = jax.tree.map(lambda x: jnp.asarray(x, x.dtype), attacks_lib.no_attack())  # strong-typed leaves
-    return s.replace(info=dict(s.info, adv=adv_init(), attack=none, aa_extra=jnp.zeros(())))
+    info = dict(s.info, adv=adv_init(), attack=none, aa_extra=jnp.zeros(()))
+    if self.mix is not None:
+      info["scripted"], sched = self.mix.draw(self.env, s.info, rng)
+      info["scripted_attack"] = jax.tree.map(lambda a, b: jnp.asarray(a, jnp.asarray(b).dtype), sched, none)
+    return s.replace(info=info)
 
   def observe(self, state: State, sg_setpoint) -> jax.Array:
     """Attacker observation [45] given SpecGuard's velocity setpoint [3] (m/s) of this step."""
@@ -151,6 +158,8 @@ class AttackerEnv(Wrapper):
     cfg, info = self.cfg, state.info
     sg_action, raw = action[:3], action[3:]
     sched, new_adv = plan(cfg, info["adv"], raw, info["time"], self.env.dt)
+    if self.mix is not None:   # a scripted campaign's episode flies its own attack
+      sched = jax.tree.map(lambda a, b: jnp.where(info["scripted"], a, b), info["scripted_attack"], sched)
     out = self.env.step(state.replace(info=dict(info, attack=sched)), sg_action)
     on = new_adv["on"]
     alarm = out.info.get("alarm", jnp.zeros(()))

@@ -128,6 +128,8 @@ class TrainConfig:
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
+  campaign_share / campaigns: the share of phase-2 episodes that fly one of the evaluation's scripted campaigns
+  (long: to the end of the mission, hazard-timed, GPS pairs) instead of the agent's attack (ppo/campaign_mix.py).
   """
   vehicle: str = "drone"
   variant: str = "rc"
@@ -151,6 +153,8 @@ class TrainConfig:
   attack_gamma: float = 0.1
   attack_max_sensors: int = 2
   attack_min_onset_s: float = 0.0
+  campaign_share: float = 0.25
+  campaigns: tuple = ("long", "hazard", "multi")
   alternate_iters: int = 10
   converge_eps: float = 1e-3
   converge_window: int = 20
@@ -249,6 +253,11 @@ class TrainConfig:
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
     checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
     checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)
+    checks.number("campaign_share", self.campaign_share, 0, 1)
+    checks.sequence("campaigns", self.campaigns)
+    bad = [c for c in self.campaigns if c not in ("long", "hazard", "multi")]
+    if bad:
+      raise ValueError(f"unknown training campaign(s) {bad}; choose from long, hazard, multi")
     checks.number("converge_eps", self.converge_eps, 0)
     checks.number("obs_clip", self.obs_clip, 0, lo_open=True)
     checks.number("checkpoint_every_s", self.checkpoint_every_s, 0, allow_inf=True)

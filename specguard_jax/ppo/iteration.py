@@ -34,6 +34,7 @@ from envs.wrappers import AutoReset
 from specguard_jax import evaluation
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
+from specguard_jax.ppo import campaign_mix
 from specguard_jax.ppo import distributed, losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
 from specguard_jax.types import RESIDUAL_DETECTORS, SENSOR_NAMES
@@ -81,7 +82,9 @@ def make_env(cfg: TrainConfig, phase: int):
                                      alpha=cfg.attack_alpha, beta=cfg.attack_beta, gamma=cfg.attack_gamma,
                                      max_sensors=min(cfg.attack_max_sensors, len(cfg.attack_sensors)),
                                      min_onset_s=cfg.attack_min_onset_s)
-  return attacker_lib.AttackerEnv(env, acfg, cfg.speeds)
+  mix = campaign_mix.CampaignMix(share=cfg.campaign_share, campaigns=tuple(cfg.campaigns),
+                                 sensors=tuple(cfg.attack_sensors))
+  return attacker_lib.AttackerEnv(env, acfg, cfg.speeds, mix=mix)
 
 
 def sg_policy(cfg: TrainConfig) -> networks.Policy:
@@ -290,8 +293,11 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       r_aa = env.reward(r_sg, info["aa_extra"])
       with jax.named_scope("attack_agent"):
         o_aa_next = aa_obs(nxt.replace(obs=final_obs), setpoint)  # approximation: next attacker obs from final obs
+      # the agent's own episodes (a scripted campaign's flies its attack, not the agent's: no sample of it)
+      agent_turn = (1.0 - state.info["scripted"].astype(jnp.float32) if "scripted" in state.info
+                    else jnp.ones_like(done))
       out["aa"] = {"obs": o_aa, "next_obs": o_aa_next, "action": a_aa, "logp": logp_aa, "reward": r_aa,
-                   "terminated": term, "done": done, "mask": jnp.ones_like(done)}
+                   "terminated": term, "done": done, "mask": agent_turn}
       ep_ret_aa = ep_ret_aa + r_aa
     # ---- episode statistics (finished episodes only), accumulated per env and summed once after the rollout ----
     with jax.named_scope("episode_stats"):
@@ -310,6 +316,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
       return {k: zero for k in ("aa_launches", "aa_onset_sum", "aa_attack_s") + AA_SENSOR_KEYS}
     a0, a1 = before["adv"], after["adv"]   # after: the next episode's fresh state where this one ended
     launch = (a1["started"] & ~a0["started"] & (done == 0)).astype(jnp.float32)
+    if "scripted" in before:   # the agent's launches only
+      launch = launch * (1.0 - before["scripted"].astype(jnp.float32))
     out = {"aa_launches": launch, "aa_onset_sum": launch * a1["onset"], "aa_attack_s": a1["on"] * base.dt}
     out.update({k: launch * a1["mask"][..., i] for i, k in enumerate(AA_SENSOR_KEYS)})
     return out
