@@ -117,7 +117,9 @@ class EnvConfig:
   clearance: float = 9.0
   mission: Any = None  # envs.missions.MissionConfig; None -> the vehicle's preset
   specs: Any = None    # specguard_jax.specs.SpecTable; None -> the vehicle's table (drone S1-S12, rover S1,2,5-8,12)
-  reward: str = "compliance"  # 'compliance' (sigmoid shaping, paper Sec. 4.3) | 'binary' (ablation baseline)
+  # 'compliance' (sigmoid shaping, paper Sec. 4.3) | 'capped' (1 while a spec holds, the sigmoid only where it is
+  # violated: specguard_jax.rewards.reward) | 'binary' (ablation baseline) | 'survival' (the FTC baseline)
+  reward: str = "compliance"
   reward_normalize: bool = True   # divide the sum over specs by the sum of weights (paper Algorithm 1)
   critical_weight: float = 1.0    # weight of the critical specs S1, S2, S12 in the sum
   attack: Any = None  # specguard_jax.attacks.AttackConfig: a random attack per episode; None -> no attack
@@ -179,7 +181,8 @@ class EnvConfig:
   params_file: str = ""
   # The policy's observation (envs.observation): "paper24" the paper's x'_t and mission context from the estimate (24
   # inputs); "recovery" adds the alarm, the diagnosed-sensor mask, the time since the alarm, the estimate's 1-sigma
-  # and a ring of `proximity_sectors` range sensors (noisy, capped at `proximity_range` m) on the true geometry.
+  # and a ring of `proximity_sectors` range sensors (noisy, capped at `proximity_range` m) on the true geometry;
+  # "context" adds the navigator's mission phase (one-hot).
   obs_layout: str = "paper24"
   # Mission phases in which the policy's setpoint applies (while control_mode lets it act): "cruise_loiter" (the
   # waypoint legs and the loiter, as the paper's velocity override) or "all" (take-off, cruise, loiter, descent and
@@ -491,7 +494,8 @@ class RAVEnv(Env):
     monitor, spec_rob, _ = self.spec_eval.monitor_update(self.spec_eval.monitor_init(), signals)
     info["spec_monitor"] = monitor
     info["spec_robustness"] = spec_rob
-    info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary")[1]
+    info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary",
+                                         capped=self.config.reward == "capped")[1]
     obs = self._observation(world, mission, sim, key=k_run)
     metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
     return State(pipeline_state=phys, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
@@ -582,7 +586,8 @@ class RAVEnv(Env):
       monitor, spec_rob, _ = self.spec_eval.monitor_update(info["spec_monitor"], signals)
       reward, per_spec = self.reward_fn(signals, normalize=self.config.reward_normalize,
                                         critical_weight=self.config.critical_weight,
-                                        binary=self.config.reward == "binary")
+                                        binary=self.config.reward == "binary",
+                                        capped=self.config.reward == "capped")
     if self.config.reward == "survival":   # FTC baseline: 1 per step in flight, 0 on the step it crashes
       reward = rewards_lib.survival_reward(collision | crash | nan)
     reward = jnp.where(finite, reward, 0.0)
@@ -794,8 +799,10 @@ class RAVEnv(Env):
         jnp.stack([jnp.minimum(d_obs, 50.0), jnp.clip(q["fence_margin"], -50.0, 50.0), q["path_deviation"],
                    pos[2] - self._ground_offset(), math3d.norm(vel[:2]),
                    jnp.clip(mission.deadline[nav.target] - nav.time, -100.0, 300.0)])])
-    if self.config.obs_layout == "recovery":
+    if self.config.obs_layout in ("recovery", "context"):
       obs = jnp.concatenate([obs, self._recovery_context(world, sim, key)])
+    if self.config.obs_layout == "context":
+      obs = jnp.concatenate([obs, obs_lib.phase_one_hot(nav.phase)])
     return obs.astype(jnp.float32)
 
   def _recovery_context(self, world, sim, key) -> jax.Array:

@@ -17,7 +17,10 @@ obstacle, fence margin, path deviation, altitude, horizontal speed, waypoint sla
                         plus range noise, capped at the sensor's maximum range. Not attacked: the paper's threat
                         model spoofs the navigation sensors; its S1 monitor reads distance sensors, and the authors'
                         released environment gives its policy six range sensors.
-The first 24 entries are the same in both layouts (the attack agent reads x'_t and the obstacle distance there).
+`context` = recovery + the mission phase the navigator is in (specs S3, S5, S7, S9, S10, S11 hold in some phases
+only, S9's 0.5 m/s landing limit among them: without it the policy cannot tell a landing from a climb-out):
+  phase [4]             one-hot of takeoff, cruise, loiter, descent (all 0 once the mission is done)
+The first 24 entries are the same in every layout (the attack agent reads x'_t and the obstacle distance there).
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ import jax.numpy as jnp
 from specguard_jax.types import SENSOR_NAMES
 
 LAYOUT_VERSION = 1
-LAYOUTS = ("paper24", "recovery")
+LAYOUTS = ("paper24", "recovery", "context")
+PHASES = 4   # navigator.PHASE_NAMES before "done"
 TIME_CAP_S = 60.0
 STD_CAP = 100.0
 
@@ -52,9 +56,12 @@ def fields(layout: str, sectors: int) -> tuple:
   """((name, size), ...) of `layout` with a proximity ring of `sectors` beams."""
   if layout == "paper24":
     return PAPER24_FIELDS
+  recovery = PAPER24_FIELDS + (("alarm", 1), ("diagnosed", len(SENSOR_NAMES)), ("time_since_alarm", 1),
+                                ("estimate_std", 4), ("proximity", int(sectors)))
   if layout == "recovery":
-    return PAPER24_FIELDS + (("alarm", 1), ("diagnosed", len(SENSOR_NAMES)), ("time_since_alarm", 1),
-                             ("estimate_std", 4), ("proximity", int(sectors)))
+    return recovery
+  if layout == "context":
+    return recovery + (("phase", PHASES),)
   raise ValueError(f"unknown observation layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
 
 
@@ -78,6 +85,11 @@ def noisy_ranges(ranges: jax.Array, key: jax.Array, max_range: float, cfg: Range
   [0, max_range]."""
   sigma = cfg.sigma_m + cfg.sigma_frac * ranges
   return jnp.clip(ranges + sigma * jax.random.normal(key, ranges.shape), 0.0, max_range)
+
+
+def phase_one_hot(phase) -> jax.Array:
+  """The `context` layout's phase entries [PHASES] float32: one-hot of the navigator's phase (0 when done)."""
+  return jax.nn.one_hot(jnp.asarray(phase, jnp.int32), PHASES, dtype=jnp.float32)
 
 
 def recovery_context(alarm, diagnosed, time_since_alarm, estimate_std, proximity) -> jax.Array:

@@ -220,7 +220,7 @@ def specguard_from_run(name: str, run_dir: str, *, reconstruction: bool | None =
   on)."""
   fn, p, cfg = load_run_policy(run_dir)
   overrides = run_overrides(cfg, reconstruction=reconstruction) + obs_overrides(run_dir)
-  if dict(overrides)["obs_layout"] == "recovery":
+  if dict(overrides)["obs_layout"] in ("recovery", "context"):
     overrides += (("proximity_range", float(cfg.env.proximity_range)),)
   return Controller(name, overrides, fn, p, description or f"SpecGuard-{cfg.variant.upper()} from {run_dir}")
 
@@ -291,6 +291,15 @@ def _binary(ctx: BuildContext) -> Controller:
   return specguard_from_run("specguard_binary", d, description=f"SpecGuard trained with the binary reward ({d})")
 
 
+def _capped(ctx: BuildContext) -> Controller:
+  d = ctx.run("capped")
+  if not d:
+    raise NotAvailable("no capped-reward run given (--runs capped=DIR, train.py --reward capped)")
+  _check_vehicle(ctx, d)
+  return specguard_from_run("specguard_capped", d,
+                            description=f"SpecGuard trained with the capped compliance reward ({d})")
+
+
 # The SpecGuard builders only read their run's files (config.json, policy.msgpack): each is its own cheap check.
 register("no_protection", _no_protection, "the autopilot alone")
 register("specguard_rc", _specguard("rc"), "SpecGuard Reactive Control (train.py run, variant rc)",
@@ -304,3 +313,4 @@ register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop
 register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")
 register("specguard_no_recon", _no_recon, "SpecGuard without state reconstruction (ablation)", check=_no_recon)
 register("specguard_binary", _binary, "SpecGuard trained with the binary reward (ablation)", check=_binary)
+register("specguard_capped", _capped, "SpecGuard trained with the capped compliance reward (ablation)", check=_capped)

@@ -69,6 +69,11 @@ def _campaign(name: str):
   return parts[0] if len(parts) == 3 else None
 
 
+def _attack_free(setting: str) -> bool:
+  """Attack-free missions: the attack-free setting and the forced false alarms (a zero-bias attack)."""
+  return setting == "attack_free" or setting.startswith("false_alarm/")
+
+
 def build(results: dict, records: dict, meta: dict) -> dict:
   """The report dict: per group/controller/setting metrics, pooled settings, the paper's experiments as views."""
   groups = {}
@@ -80,8 +85,10 @@ def build(results: dict, records: dict, meta: dict) -> dict:
     dt, names, crit = env["dt"], env["spec_names"], env["critical"]
     settings = g["settings"]
     twin = records.get((gname, "no_protection"))
-    af = settings.index("attack_free")
-    gt_all = M.select(twin, twin["setting"] == af) if twin is not None else None
+    # ground truth: the twin's attack-free missions; a group without that setting (false alarms) flies only
+    # attack-free missions, so all of its twin's are
+    af = settings.index("attack_free") if "attack_free" in settings else None
+    gt_all = None if twin is None else (twin if af is None else M.select(twin, twin["setting"] == af))
     t_b = M.baseline_time(gt_all) if gt_all is not None else None
     per = {}
     for (gn, cname), rec in records.items():
@@ -92,7 +99,7 @@ def build(results: dict, records: dict, meta: dict) -> dict:
       for i, s in enumerate(settings):
         r = M.select(rec, rec["setting"] == i)
         tw = M.select(twin, twin["setting"] == i) if twin is not None else None
-        out[s] = M.summarize(r, tw, gt_all, attacked=s != "attack_free", dt=dt, spec_names=names, critical=crit,
+        out[s] = M.summarize(r, tw, gt_all, attacked=not _attack_free(s), dt=dt, spec_names=names, critical=crit,
                              t_b=t_b)
         if _single(s):
           for key in (f"pooled/{_profile(s)}", "pooled/attacked"):

@@ -28,9 +28,10 @@ def test_config_errors():
 
 
 def test_residual_detector_in_env_flags_and_names_gps_spoof():
-  """The alarm and diagnosis in info, and the same in the policy's recovery context (envs.observation)."""
+  """The alarm and diagnosis in info, and the same in the policy's recovery context and mission phase (the `context`
+  layout = `recovery` + phase; envs.observation)."""
   env = envs.make("drone", world="open_beach", mission=MISSION, detector="residual", domain_randomization=False,
-                  obs_layout="recovery")
+                  obs_layout="context")
   sched = attacks.schedule_for("gps", [30.0, 0.0, 0.0], onset=15.0, duration=100.0)
   state, _, _ = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(7), 2), 170, attacks=_pair(sched))
   # 17 s flown: the overt spoof started at 15 s; the alarm is up and names the GPS (index 0).
@@ -39,8 +40,11 @@ def test_residual_detector_in_env_flags_and_names_gps_spoof():
   assert np.all(np.asarray(state.info["diagnosis"]) == gps)
   assert np.all(np.asarray(state.info["episode"]["detected"]) == 1.0)
   obs = np.asarray(state.obs)
-  assert obs.shape == (2, env.observation_size) and env.observation_size == 24 + 1 + 6 + 1 + 4 + 8
-  alarm, diagnosed, since, std, ranges = obs[:, 24], obs[:, 25:31], obs[:, 31], obs[:, 32:36], obs[:, 36:]
+  assert obs.shape == (2, env.observation_size) and env.observation_size == 24 + 1 + 6 + 1 + 4 + 8 + 4
+  alarm, diagnosed, since, std, ranges = obs[:, 24], obs[:, 25:31], obs[:, 31], obs[:, 32:36], obs[:, 36:44]
+  phase = np.asarray(state.info["sim"]["nav"].phase)
+  assert np.all(phase == 1)   # cruising at 17 s
+  np.testing.assert_array_equal(obs[:, 44:], np.eye(4)[phase])
   assert np.all(alarm == 1.0) and np.all(diagnosed[:, gps] == 1.0)
   np.testing.assert_array_equal(diagnosed, np.asarray(state.info["sim"]["det"].mask))
   # raised within the 2 s since the onset, counted in env steps of 0.1 s

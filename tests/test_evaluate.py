@@ -30,7 +30,7 @@ def report(tmp_path_factory):
   out = str(tmp_path_factory.mktemp("eval"))
   rc = evaluate_cli.main(["--controllers", "no_protection,autopilot_copy", "--sensors", "gps,gyro",
                           "--profiles", "overt", "--missions", str(MISSIONS), "--mission-s", "30,40", "--max-s", "90",
-                          "--out", out, "--no-progress"])
+                          "--false-alarms", "gps", "--out", out, "--no-progress"])
   assert rc == 0
   with open(os.path.join(out, "report.json")) as f:
     rep = json.load(f)
@@ -58,9 +58,28 @@ def test_report_files_and_keys(report):
         assert 0.0 <= m[k] <= 1.0
       lo, hi = m["rsr_rate"]["ci"]
       assert lo <= m["rsr"] <= hi
-  assert rep["totals"]["missions"] == 2 * 3 * MISSIONS and rep["wall_s"] > 0
+  assert rep["totals"]["missions"] == 2 * (3 + 1) * MISSIONS and rep["wall_s"] > 0   # + the false-alarm group
   md = open(os.path.join(out, "report.md")).read()
   assert "not AirSim" in md and "Table 5" in md and "autopilot_copy" in md
+
+
+def test_forced_false_alarms_group(report):
+  """--false-alarms: attack-free missions with the alarm raised; the autopilot copy has no reconstruction and no
+  policy, so the alarm changes nothing and it flies exactly its twin's missions (the report's ground truth for a
+  group without an 'attack_free' setting is the twin's own missions)."""
+  out, rep = report
+  g = rep["groups"]["false_alarm"]
+  assert g["settings"] == ["false_alarm/gps"]
+  a = np.load(os.path.join(out, "records/false_alarm__no_protection.npz"))
+  b = np.load(os.path.join(out, "records/false_alarm__autopilot_copy.npz"))
+  np.testing.assert_array_equal(a["violated"], b["violated"])
+  for c in ("no_protection", "autopilot_copy"):
+    m = g["metrics"][c]["false_alarm/gps"]
+    assert m["missions"] == MISSIONS and m["md"] == 0.0
+  m0, m1 = (g["metrics"][c]["false_alarm/gps"] for c in ("no_protection", "autopilot_copy"))
+  assert m0["any_violation_rate"] == m1["any_violation_rate"] and m0["rsr"] == m1["rsr"]
+  md = open(os.path.join(out, "report.md")).read()
+  assert "## Forced false alarms" in md
 
 
 def test_twin_reproduces_itself(report):

@@ -108,6 +108,9 @@ def test_layout_sizes_and_description():
   d = obs_lib.describe("recovery", 6)
   assert d["name"] == "recovery" and d["version"] == obs_lib.LAYOUT_VERSION and obs_lib.sectors_of(d) == 6
   assert obs_lib.sectors_of(obs_lib.describe("paper24", 8)) == 0
+  assert obs_lib.size("context", 8) == 48 and obs_lib.fields("context", 8)[:-1] == obs_lib.fields("recovery", 8)
+  np.testing.assert_array_equal(obs_lib.phase_one_hot(jnp.int32([0, 1, 2, 3, 4])),
+                                np.vstack([np.eye(4), np.zeros(4)]))   # done (4): no phase
   with pytest.raises(ValueError, match="unknown observation layout 'radar'"):
     obs_lib.size("radar", 8)
 

@@ -114,3 +114,29 @@ def test_binary_baseline():
   s_land = {**s, "in_cruise": jnp.array(0.0), "in_landing": jnp.array(1.0), "descent_speed": jnp.array(0.9)}
   _, per = rewards.binary_reward(s_land, d)
   assert {n for n, v in zip(d.names, np.asarray(per)) if v == 0} == {"S9"}
+
+
+def test_capped_reward_is_one_while_a_spec_holds_and_the_sigmoid_where_it_does_not():
+  """Capped compliance: every spec that holds pays exactly 1 (so a compliant step totals the maximum and no compliant
+  flight earns less than another), a violated one 2 sigma(k margin) < 1, continuous at the threshold."""
+  d = specs.drone_specs()
+  fn = rewards.RewardFn.create(d)
+  s = _signals()
+  total, per = fn(s, normalize=True, capped=True)
+  assert float(total) == 1.0 and np.all(np.asarray(per)[np.asarray(fn.weights()) > 0] == 1.0)
+  shaped_total, _ = fn(s, normalize=True)
+  assert float(shaped_total) < 1.0   # the paper's sigmoids pay less than 1 for the same compliant step
+  # obstacle at 3 m (CP_DIST 5 m, k 1/m): S1 and S6 violated, S5 too (no waypoint slack, 9 m from the waypoint)
+  s_bad = {**s, "obstacle_distance": jnp.array(3.0), "wp_slack": jnp.array(-1.0), "dist_wp": jnp.array(9.0)}
+  _, per = fn(s_bad, capped=True)
+  per = dict(zip(d.names, np.asarray(per)))
+  _, binary = fn(s_bad, binary=True)
+  assert {n for n, v in per.items() if v < 1.0} == {n for n, v in zip(d.names, np.asarray(binary)) if v == 0}
+  np.testing.assert_allclose(per["S1"], 2 * fam.sigmoid(1.0 * (3.0 - 5.0)), rtol=1e-6)
+  np.testing.assert_allclose(per["S6"], 2 * fam.sigmoid(0.5 * (3.0 - 5.0)), rtol=1e-6)
+  np.testing.assert_allclose(per["S5"], 2 * fam.sigmoid(0.25 * (d.params["NAV_ACC_RAD"] - 9.0)), rtol=1e-6)
+  # landing at 0.9 m/s against MPC_LAND_SPEED 0.5: only S9, and just past the threshold it is ~1 (continuous)
+  land = {**s, "in_cruise": jnp.array(0.0), "in_landing": jnp.array(1.0)}
+  for v, expect in ((0.9, 2 * fam.sigmoid(8.0 * (0.5 - 0.9))), (0.5001, 1.0), (0.3, 1.0)):
+    _, per = fn({**land, "descent_speed": jnp.array(v)}, capped=True)
+    np.testing.assert_allclose(np.asarray(per)[d.names.index("S9")], expect, rtol=1e-3)

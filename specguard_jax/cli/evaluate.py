@@ -49,10 +49,10 @@ import warnings
 
 from specguard_jax.types import RECON_MODES, VEHICLES
 
-RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "specguard_no_recon", "suburban", "urban", "rover")
+RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "capped", "specguard_no_recon", "suburban", "urban", "rover")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
 # Registered controllers the hard suite leaves out (ablations that need their own training runs).
-HARD_SKIP = ("specguard_no_recon", "specguard_binary")
+HARD_SKIP = ("specguard_no_recon", "specguard_binary", "specguard_capped")
 # Controllers the hard suite flies under another name with extra EnvConfig overrides:
 # (report name, registered controller, ((EnvConfig field, value), ...)); the registered one is then not flown itself.
 HARD_VARIANTS = ()

@@ -124,7 +124,11 @@ class TrainConfig:
   average returns of both agents change by less than eps of their size per iteration, between the last two windows
   of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units
   of the maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance
-  forever), so finishing the mission never looks worse than dawdling.
+  forever), so finishing the mission never looks worse than dawdling.  action_cost: the SpecGuard agent's cost per
+  step of a residual setpoint while it is in effect, action_cost * mean((setpoint / speeds)^2) in reward units
+  (0..action_cost per step; residual actions only, not the paper's absolute moves; the attack agent's zero-sum
+  reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
+  spec reward is flat (the capped reward, docs/DESIGN.md "Reward").
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
@@ -159,6 +163,7 @@ class TrainConfig:
   converge_eps: float = 1e-3
   converge_window: int = 20
   completion_bonus: float = -1.0
+  action_cost: float = 0.0
   obs_clip: float = 10.0
   sg: PPOConfig = PPOConfig()
   aa: PPOConfig = PPOConfig(ent_coef=0.01)
@@ -250,6 +255,7 @@ class TrainConfig:
     checks.sequence("attack_sensors", self.attack_sensors)
     for name in ("init_log_std", "attack_alpha", "attack_beta", "attack_gamma", "completion_bonus"):
       checks.number(name, getattr(self, name))
+    checks.number("action_cost", self.action_cost, 0)
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
     checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
     checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)

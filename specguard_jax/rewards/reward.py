@@ -8,6 +8,12 @@ normalize()), so a fully satisfied step scores ~1. Specs of family "none" (monit
 Binary baseline: 1 when satisfied and 0 when violated, per spec per step: the truth (robustness >= 0) of the body
 of `always(body)` at this step when the body is non-temporal (S1-S6, S8, S9, S11, S12), else (S7, S10, whose body
 has a grace window) of `guard -> condition` from the reward fields.
+Capped compliance (`capped=True`): 1 wherever the binary reward is 1; where the step violates the spec, the
+compliance sigmoid of the margin rescaled to reach 1 at the threshold, 2 sigma(k margin) in (0, 1) (a gradient back
+to safety). Every compliant step then earns exactly the maximum, so no compliant trajectory earns less than another
+(no pay for clearance beyond the threshold, none for rushing to a waypoint while the spec still holds) and the
+completion bonus of 1 / (1 - gamma) per unit reward (ppo.config.TrainConfig.completion_bonus) is time-neutral for a
+compliant flight. Why it exists: docs/DESIGN.md "Reward".
 
 Default k constants (the paper leaves k unspecified; chosen so the reward moves from 0.5 at the threshold to ~0.98
 about one "natural scale" inside the safe side): S1 1/m (obstacle, a = 5 m), S2 0.5/m (path, 10 m), S3/S4 0.5/m
@@ -65,8 +71,8 @@ class RewardFn:
     return jnp.array([0.0 if t.family == "none" else (critical_weight if t.critical else 1.0) for t in self.terms],
                      jnp.float32)
 
-  def per_spec(self, signals_t: Mapping[str, jnp.ndarray], binary: bool = False) -> jnp.ndarray:
-    """Per-spec reward [..., n] for one step (signals_t: {name: [...]})."""
+  def per_spec(self, signals_t: Mapping[str, jnp.ndarray], binary: bool = False, capped: bool = False) -> jnp.ndarray:
+    """Per-spec reward [..., n] for one step (signals_t: {name: [...]}); binary / capped: see the module docstring."""
     sig = {n: jnp.asarray(v, jnp.float32) for n, v in signals_t.items()}
     shape = jnp.broadcast_shapes(*[v.shape for v in sig.values()])
     out = []
@@ -78,8 +84,12 @@ class RewardFn:
         out.append(jnp.zeros(shape, jnp.float32))
         continue
       fs = tuple(predicate_value(e, sig) for e in t.exprs)
+      margin = families.margin(t.family, fs, t.threshold)
       if binary:
-        r = (families.margin(t.family, fs, t.threshold) >= 0).astype(jnp.float32)
+        r = (margin >= 0).astype(jnp.float32)
+      elif capped:
+        holds = evaluate(t.body, sig) >= 0 if t.body is not None else margin >= 0
+        r = jnp.where(holds, 1.0, jnp.minimum(2.0 * families.sigmoid(t.k * margin), 1.0))
       else:
         r = families.shaped(t.family, fs, t.threshold, t.k)
       if t.guard is not None:
@@ -88,9 +98,9 @@ class RewardFn:
     return jnp.stack(out, axis=-1)
 
   def __call__(self, signals_t: Mapping[str, jnp.ndarray], normalize: bool = False, critical_weight: float = 1.0,
-               binary: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
+               binary: bool = False, capped: bool = False) -> Tuple[jnp.ndarray, jnp.ndarray]:
     """(total [...], per_spec [..., n]) for one step; see the module docstring."""
-    per = self.per_spec(signals_t, binary)
+    per = self.per_spec(signals_t, binary, capped)
     w = self.weights(critical_weight)
     total = jnp.sum(per * w, axis=-1)
     if normalize:
