@@ -140,3 +140,14 @@ def test_capped_reward_is_one_while_a_spec_holds_and_the_sigmoid_where_it_does_n
   for v, expect in ((0.9, 2 * fam.sigmoid(8.0 * (0.5 - 0.9))), (0.5001, 1.0), (0.3, 1.0)):
     _, per = fn({**land, "descent_speed": jnp.array(v)}, capped=True)
     np.testing.assert_allclose(np.asarray(per)[d.names.index("S9")], expect, rtol=1e-3)
+
+
+def test_residual_cost_scales_with_the_residual_where_it_is_in_effect():
+  """TrainConfig.action_cost: 0 without a residual or where it is not in effect, `cost` at full scale on every axis,
+  quadratic in between, per axis relative to the axis' speed scale."""
+  from specguard_jax.ppo.networks import residual_cost
+  speeds = (4.0, 4.0, 2.0)
+  sp = jnp.array([[0.0, 0.0, 0.0], [4.0, -4.0, 2.0], [2.0, 0.0, 0.0], [0.0, 0.0, -1.0], [4.0, -4.0, 2.0]])
+  active = jnp.array([1.0, 1.0, 1.0, 1.0, 0.0])
+  np.testing.assert_allclose(residual_cost(sp, speeds, active, 0.05), [0.0, 0.05, 0.05 / 12, 0.05 / 12, 0.0],
+                             rtol=1e-6)

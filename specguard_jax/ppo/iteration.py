@@ -287,9 +287,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg
-    if cfg.action_cost > 0 and base.config.override_residual:   # [G, B/G]: the residual's size while in effect
-      effort = jnp.mean(jnp.square(setpoint / jnp.asarray(cfg.speeds, jnp.float32)), axis=-1)
-      r_learn = r_sg - cfg.action_cost * mask * effort
+    if cfg.action_cost > 0 and base.config.override_residual:   # residual setpoints only, not absolute moves
+      r_learn = r_sg - networks.residual_cost(setpoint, cfg.speeds, mask, cfg.action_cost)
     out["sg"] = {"obs": obs, "next_obs": final_obs, "action": a_sg, "logp": logp_sg, "reward": r_learn,
                  "terminated": term, "done": done, "mask": mask}
     ep_ret = ep_ret + r_sg

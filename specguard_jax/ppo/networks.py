@@ -145,6 +145,14 @@ def value_module(hidden: Sequence[int], activation: str = "tanh", dtype: str = "
   return MLP(tuple(hidden) + (1,), activation, 1.0, dtype)
 
 
+def residual_cost(setpoint, speeds, active, cost: float):
+  """The SpecGuard agent's cost of a residual setpoint (TrainConfig.action_cost): cost * mean((setpoint / speeds)^2)
+  over the 3 axes, where the residual is in effect (active [...] 0/1), in reward units per step: 0 for no residual,
+  `cost` for a full-scale one. setpoint [..., 3] m/s; speeds [3] m/s per axis."""
+  effort = jnp.mean(jnp.square(setpoint / jnp.asarray(speeds, jnp.float32)), axis=-1)
+  return cost * active * effort
+
+
 def to_setpoint(kind: str, action, speeds):
   """SpecGuard's action -> velocity setpoint [.., 3] m/s (yaw frame). speeds: [3] m/s per axis."""
   speeds = jnp.asarray(speeds, jnp.float32)
