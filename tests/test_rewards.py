@@ -90,7 +90,7 @@ def test_table_reward_shapes_guards_weights():
   for guarded in ("S9", "S10", "S11"):  # phase off -> vacuously satisfied -> family maximum
     assert per[names.index(guarded)] == 1.0
   np.testing.assert_allclose(per[names.index("S1")], fam.two_sided(20.0, 5.0, 1.0), rtol=1e-6)
-  np.testing.assert_allclose(per[names.index("S12")], fam.fence_hv(20.0, 5.0, 1.0, 0.5), rtol=1e-6)
+  np.testing.assert_allclose(per[names.index("S12")], fam.fence(5.0, 1.0, 0.5), rtol=1e-6)
   t1, p1 = rewards.reward(_signals(), d, normalize=True, critical_weight=3.0)
   w = np.array([3.0 if c else 1.0 for c in d.critical])
   np.testing.assert_allclose(t1, (np.asarray(p1) * w).sum() / w.sum(), rtol=1e-6)
@@ -151,3 +151,14 @@ def test_residual_cost_scales_with_the_residual_where_it_is_in_effect():
   active = jnp.array([1.0, 1.0, 1.0, 1.0, 0.0])
   np.testing.assert_allclose(residual_cost(sp, speeds, active, 0.05), [0.0, 0.05, 0.05 / 12, 0.05 / 12, 0.0],
                              rtol=1e-6)
+
+
+def test_s12_pays_beside_a_keep_out_prism_taller_than_the_vehicle():
+  """15 m beside a keep-out prism whose top is 5 m above the drone: the spec holds (3D margin 15 m), so its shaped
+  reward must be ~1 (the two-factor (h, v) product paid ~0 there: v = -5 m), and it falls as the margin closes."""
+  d = specs.drone_specs()
+  i = d.names.index("S12")
+  beside = {**_signals(), "fence_margin": jnp.array(15.0), "fence_h": jnp.array(15.0), "fence_v": jnp.array(-5.0)}
+  near = {**beside, "fence_margin": jnp.array(2.0), "fence_h": jnp.array(2.0)}
+  r_far, r_near = (float(np.asarray(rewards.reward(s, d)[1])[i]) for s in (beside, near))
+  assert r_far > 0.99 and r_near < r_far

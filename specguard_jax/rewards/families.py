@@ -15,9 +15,10 @@ Deviations from the printed appendix equations (`paper_equation` below reproduce
   4. S9 (descent speed <= MPC_LAND_SPEED) and S11 (stay within the loiter radius; STL `< 8`) are printed keep-above
      but mean keep-below; S10 (STL: climb rate >= MPC_TKO_SPEED) is printed keep-below but means keep-above. We use
      the meaning (the spec tables pick the family).
-  5. S12 drone: the printed product repeats one factor 1/(1+e^{k(f-1)}) twice and decreases as the margin grows. We
-     use one factor per margin, increasing in it: sigma(k(h-m)) * sigma(k(v-m)) with h = fence_h, v = fence_v
-     (signed margins, > 0 inside). S12 rover likewise sigma(k(f-m)) on fence_margin (printed: decreasing in f).
+  5. S12 drone: the printed product repeats one factor 1/(1+e^{k(f-1)}) twice and decreases as the margin grows.
+     `fence_hv` is its repaired form, sigma(k(h-m)) * sigma(k(v-m)) (an AND of horizontal and vertical margins: right
+     for staying inside a cylinder); the spec tables use `fence`, sigma(k(f-m)) on the 3D fence_margin, for both
+     vehicles, because our keep-out prisms are cleared by being beside OR above them (specs.table, S12).
   6. Outside a spec's phase guard the reward is the family's maximum (1), i.e. vacuous satisfaction (`reward.py`).
 """
 

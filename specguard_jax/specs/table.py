@@ -24,8 +24,11 @@ Choices (for docs/DESIGN.md):
     STL states; the paper's printed reward equations for S9/S11 are keep-above (see rewards).
   * S10 follows Table 4's STL (climb rate >= MPC_TKO_SPEED during take-off); the printed reward is keep-below.
   * S12: violated when fence_margin < 1 m (SG_GF_MARGIN / FENCE_MARGIN). GF_MAX_HOR_DIST / GF_MAX_VER_DIST set by a
-    parameter file add the home-centred fence they describe (specs.vehicle_params, EnvConfig.params_file); the
-    drone reward is the two-factor (fence_h, fence_v) form.
+    parameter file add the home-centred fence they describe (specs.vehicle_params, EnvConfig.params_file). The
+    reward is one factor on the same 3D margin for both vehicles: the printed two-factor (h, v) product is an AND
+    of the horizontal and vertical margins, right for staying inside a cylinder but wrong for the keep-out prisms,
+    which the vehicle clears by being beside OR above them (beside a prism taller than its altitude, v < 0 and the
+    product paid ~0 while the spec held).
   * Intervals are written in seconds and converted to steps with the dt given to the evaluator.
 """
 
@@ -204,8 +207,8 @@ _DRONE_ROWS = (
      f"{_off('in_takeoff')}))", False, "keep_above", 2.0, ("speed_z",), "MPC_TKO_SPEED", _on("in_takeoff")),
     ("S11", "Maintain loiter radius", f"always({_on('in_loiter')} -> (loiter_deviation < NAV_MC_ALT_RADIUS))", False,
      "keep_below", 0.5, ("loiter_deviation",), "NAV_MC_ALT_RADIUS", _on("in_loiter")),
-    ("S12", "Stay within geofence", "always(fence_margin > SG_GF_MARGIN)", True, "fence_hv", 0.5,
-     ("fence_h", "fence_v"), "SG_GF_MARGIN"),
+    ("S12", "Stay within geofence", "always(fence_margin > SG_GF_MARGIN)", True, "fence", 0.5,
+     ("fence_margin",), "SG_GF_MARGIN"),
 )
 
 _ROVER_ROWS = (
