@@ -59,9 +59,13 @@ def _first_alarm(out, onset, i):
   return int(np.argmax(hit))
 
 
-@pytest.mark.xfail(strict=False, reason="with the presets recalibrated for the realistic sensors the first stealthy "
-                   "gyro ramp raises no alarm within the test's window (gyro_z h 28.2, gyro_x/y 102-121)")
-@pytest.mark.parametrize("i", [k for k, (s, _) in enumerate(ROWS) if s == "gyro"])
+_NO_ALARM = pytest.mark.xfail(strict=False, reason="with the presets recalibrated for the realistic sensors the first "
+                              "stealthy gyro ramp raises no alarm within the test's window (gyro_z h 28.2, gyro_x/y "
+                              "102-121)")
+_GYRO_ROWS = [k for k, (s, _) in enumerate(ROWS) if s == "gyro"]
+
+
+@pytest.mark.parametrize("i", [pytest.param(k, marks=_NO_ALARM) if k == _GYRO_ROWS[0] else k for k in _GYRO_ROWS])
 def test_stealthy_gyro_ramp_blamed_on_the_gyro(flights, i):
   env, out, onset = flights
   k = _first_alarm(out, onset, i)

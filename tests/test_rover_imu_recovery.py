@@ -57,15 +57,7 @@ def drives():
   return out, onset
 
 
-# With the realistic aiding errors (sensors.SensorConfig) a stealthy rover gyro x/y ramp is blamed on the GPS, at
-# once or after the gyro, and the reconstruction then drives on the ramped gyro. The cause is not isolated yet; the
-# suspects are the GPS-vs-odometry cross-checks, now sized for u-blox-class GPS wander and odometry scale and slip.
-_GPS_BLAME = pytest.mark.xfail(reason="stealthy rover gyro ramp blamed on the GPS with the realistic aiding errors: "
-                               "the rover diagnosis (detection/detector.py) has to adapt", strict=False)
-
-
-@pytest.mark.parametrize("i", [pytest.param(i, marks=_GPS_BLAME) if i in (2,) else i
-                               for i in range(len(ROWS))])
+@pytest.mark.parametrize("i", range(len(ROWS)))
 def test_rover_gyro_reconstruction_stays_with_the_truth(drives, i):
   out, onset = drives
   on = out["alarm"][i] & (out["t"][i] >= onset[i]) & ~out["done"][i]
