@@ -19,9 +19,22 @@ from specguard_jax.baselines import common
 ONSET, BIAS, SECONDS = 8.0, 20.0, 14.0
 
 
+# The learned baselines' training size here: half the 'ci' budget's missions, shorter flights, a third of its Adam
+# steps at half its minibatch; the held-out checks below hold at this size as at 'ci'.
+TEST_BUDGET = common.Budget(missions=12, seconds=25.0, fit_steps=600, batch=128)
+
+
 @pytest.fixture(scope="module")
 def ctx(tmp_path_factory):
-  return controllers.BuildContext(cache_dir=str(tmp_path_factory.mktemp("baselines")), seed=0, train_budget="ci")
+  """Builds at train_budget='ci' with the 'ci' sizes replaced by TEST_BUDGET while this module runs; the attack-free
+  recording SSR, PID-Piper and the state DAE share is memoised per budget name (common.flights): cleared before and
+  after, so no other test module sees the smaller one."""
+  ci = common.budget
+  with pytest.MonkeyPatch.context() as mp:
+    mp.setattr(common, "budget", lambda name: TEST_BUDGET if name == "ci" else ci(name))
+    common.flights.cache_clear()
+    yield controllers.BuildContext(cache_dir=str(tmp_path_factory.mktemp("baselines")), seed=0, train_budget="ci")
+  common.flights.cache_clear()
 
 
 def fly(c: controllers.Controller, n_steps: int):
