@@ -37,10 +37,13 @@ COMMON = textwrap.dedent("""
         SPENT["compiles"] += k == "compile" and secs > 1.0
   jax.monitoring.register_event_duration_secs_listener(_spent)
   TINY = config.PPOConfig(num_minibatches=2, update_epochs=2, lr=1e-3)
-  # checkpoint_every_s: only the end-of-phase checkpoints (the restores below read the last one).
+  # checkpoint_every_s: only the end-of-phase checkpoints (the restores below read the last one). Phase 2 with the
+  # oracle detector: the default 'mixed' also compiles the residual one into every phase-2 program (5 of them here),
+  # which has nothing to do with how the devices split the work (its env is tested in test_env_detection).
   cfg = config.TrainConfig(num_envs=8, unroll_length=8, iters_per_call=2, phase1_steps=128, phase2_steps=128,
                            hidden=(32, 32), sg=TINY, aa=TINY, seed=3, env_groups=4, alternate_iters=1,
-                           checkpoint_every_s=1e9).with_env(worlds=("suburban_residential",)).validate()
+                           checkpoint_every_s=1e9).with_env(worlds=("suburban_residential",),
+                                                            detector="oracle").validate()
   cfg2 = dataclasses.replace(cfg, phase1_steps=0)   # phase 2 only: 1 SG + 1 AA iteration, cfg's phase-2 programs
   CB = dataclasses.replace(cfg2, seed=4, sg=dataclasses.replace(TINY, lr=2e-3, clip_eps=0.1),
                            aa=dataclasses.replace(TINY, ent_coef=0.02))   # the sweep's member b
@@ -318,7 +321,8 @@ KERNEL = textwrap.dedent("""
                   refresh_in_step=False)
   G, Bg = 2, 3
   keys = jax.random.split(jax.random.PRNGKey(0), G * Bg).reshape(G, Bg, -1)
-  state0, ref0 = jax.jit(jax.vmap(batched.reset))(keys), jax.jit(jax.vmap(ref.reset))(keys)
+  # Both resets in one program: they differ only in P's layout, so XLA compiles their common part once (CSE).
+  state0, ref0 = jax.jit(lambda k: (jax.vmap(batched.reset)(k), jax.vmap(ref.reset)(k)))(keys)
   act = jnp.full((G, Bg, 3), 0.3)
   mesh = distributed.make_mesh(2)
   distributed.use_gspmd_for_shard_map(mesh)   # as iteration.make_phase does with the kernel on several devices
@@ -328,10 +332,11 @@ KERNEL = textwrap.dedent("""
   batch_one, seen[:] = seen[-1], []
   sharded = iteration.group_step(batched, mesh, per_device=True)
   s2 = jax.device_put(state0, NamedSharding(mesh, PartitionSpec(distributed.AXIS)))
-  two = roll(sharded)(s2)
+  traced = roll(sharded).trace(s2)             # one trace: its jaxpr (the scan's body inline) and its compile
   batch_two = seen[-1]
+  jaxpr = str(traced.jaxpr)
+  two = traced.lower().compile()(s2)
   P1, P2 = one.info["sim"]["ekf"].P, ekf_lib.as_square(two.info["sim"]["ekf"].P)
-  jaxpr = str(jax.make_jaxpr(sharded)(state0, act))
   plain = str(jax.make_jaxpr(iteration.group_step(batched, mesh))(state0, act))   # not per_device: SPMD's vmap
   res = {"kernel_batch": [batch_one, batch_two], "shard_map": "shard_map" in jaxpr,
          "plain_shard_map": "shard_map" in plain, "shardy": bool(getattr(jax.config, "jax_use_shardy_partitioner", 0)),
