@@ -36,6 +36,16 @@ def drone_reset(drone_env):
 
 
 @pytest.fixture(scope="module")
+def drone_vreset(drone_env):
+  """The drone env's reset vmapped over a [B] key batch, compiled once per batch size for the tests below."""
+  return jax.jit(VmapWrapper(drone_env).reset)
+
+
+# rollout.fly_batch as one program (env, max_steps and policy static): the batch's reset compiled with its steps
+fly_batch = jax.jit(rollout.fly_batch, static_argnums=(0, 2, 3))
+
+
+@pytest.fixture(scope="module")
 def rover_env():
   return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
 
@@ -134,7 +144,7 @@ def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env)
   mission spec (online STL monitor over the whole episode) is satisfied."""
   env = drone_env if vehicle == "drone" else rover_env
   keys = jax.random.split(jax.random.PRNGKey(11), 4)
-  state, traj, t = rollout.fly_batch(env, keys, 1200)
+  state, traj, t = fly_batch(env, keys, 1200)
   s = rollout.summarize(state)
   assert s["complete"] == 4, s
   assert s["collision"] == s["crash"] == s["stall"] == s["fence_breach"] == s["nan"] == 0
@@ -274,13 +284,13 @@ def drone_autoreset(drone_env):
   return env, jax.jit(env.reset), jax.jit(env.step)
 
 
-def test_autoreset_reset_is_the_envs_and_the_pool_reset_apart(drone_env, drone_autoreset):
+def test_autoreset_reset_is_the_envs_and_the_pool_reset_apart(drone_autoreset, drone_vreset):
   """AutoReset.reset resets the envs and the pool in one vmapped call: each env and pool entry is what resetting it
   alone from its key gives (the keys, and so a seed's episodes, are unchanged), to float rounding."""
   _, reset, _ = drone_autoreset
   keys = jax.random.split(jax.random.PRNGKey(5), 2)
   s = reset(keys)
-  alone = jax.jit(VmapWrapper(drone_env).reset)
+  alone = drone_vreset
   k_pool, _ = jax.random.split(jax.random.fold_in(keys[0], 0x5eed))
   envs = alone(keys)
   for got, want in ((s.replace(info={k: v for k, v in s.info.items() if k in envs.info}), envs),
@@ -330,21 +340,35 @@ def test_next_obs_is_the_next_steps_obs_unless_finished(drone_env, drone_autores
     s = s2
 
 
-def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
-  """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
-  every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
+@pytest.fixture(scope="module")
+def ekf_variants(drone_env, drone_vreset):
+  """(start state [2], action [2, 3], {variant: env, state after 3 steps}) of three drone envs stepped from the same
+  start in one program (a rolled loop: one copy of each env step; one compile for the two tests below): 'full' fuses
+  every GPS row on every tick and keeps the EKF's records (the CPU's default env), 'skip' leaves the GPS rows out of
+  the EKF on its stale ticks, 'no_records' is 'full' with EnvConfig.ekf_records=False."""
   import copy
   env_skip, env_full = copy.copy(drone_env), copy.copy(drone_env)
   env_skip._gps_period, env_full._gps_period = 5, None
-  s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(8), 2))
-  a = jnp.zeros((2, 3))
-  jaxpr_skip, jaxpr_full = (str(jax.make_jaxpr(jax.vmap(e.step))(s, a)) for e in (env_skip, env_full))
-  # the 4 GPS-free ticks as a scan, the GPS tick after it: no lax.cond
-  assert "length=4" in jaxpr_skip and "length=4" not in jaxpr_full and "cond" not in jaxpr_skip
+  env_off = copy.copy(env_full)
+  env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
+  envs_ = {"full": env_full, "skip": env_skip, "no_records": env_off}
+  s = drone_vreset(jax.random.split(jax.random.PRNGKey(9), 2))
+  a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
 
   def three(env, s):   # a rolled loop: one copy of each env step in the program
     return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
-  out_skip, out_full = jax.jit(lambda s: (three(env_skip, s), three(env_full, s)))(s)
+  out = jax.jit(lambda s: {n: three(e, s) for n, e in envs_.items()})(s)
+  return s, a, {n: (envs_[n], out[n]) for n in envs_}
+
+
+def test_ekf_gps_rows_left_out_only_where_gps_is_stale(ekf_variants):
+  """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
+  every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
+  s, a, v = ekf_variants
+  (env_skip, out_skip), (env_full, out_full) = v["skip"], v["full"]
+  jaxpr_skip, jaxpr_full = (str(jax.make_jaxpr(jax.vmap(e.step))(s, a)) for e in (env_skip, env_full))
+  # the 4 GPS-free ticks as a scan, the GPS tick after it: no lax.cond
+  assert "length=4" in jaxpr_skip and "length=4" not in jaxpr_full and "cond" not in jaxpr_skip
   # The same filter in two programs, which XLA fuses (and so rounds) differently: float32 rounding apart (a flow
   # innovation of 0.03 was 1.3e-7 apart on the CI machine), far below any difference a wrong GPS schedule makes.
   for name in ("pos", "vel", "quat", "P", "test_ratio", "accepted", "innov", "gps_pos_age"):
@@ -397,20 +421,13 @@ def test_unrolled_ticks_run_the_same_ticks(drone_env):
   assert envs.make("rover", unroll_ticks=True).config.unroll_ticks
 
 
-def test_env_without_ekf_records_is_the_same_env(drone_env):
+def test_env_without_ekf_records_is_the_same_env(ekf_variants):
   """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
   per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,
   STL monitor and episode record equal the env's with them (float32 rounding: two programs); the residual detector,
   which reads them, refuses the setting."""
-  import copy
-  env_off = copy.copy(drone_env)
-  env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
-  s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(9), 2))
-  a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
-
-  def three(env, s):
-    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
-  on, off = jax.jit(lambda s: (three(drone_env, s), three(env_off, s)))(s)
+  s, _, v = ekf_variants
+  (_, on), (_, off) = v["full"], v["no_records"]
   ekf0, ekf_on, ekf_off = (x.info["sim"]["ekf"] for x in (s, on, off))
   for name in ekf_lib.RECORD_FIELDS:
     np.testing.assert_array_equal(np.asarray(getattr(ekf_off, name)), np.asarray(getattr(ekf0, name)), name)
@@ -429,16 +446,15 @@ def test_env_without_ekf_records_is_the_same_env(drone_env):
     envs.make("drone", detector="residual", ekf_records=False)
 
 
-def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
+def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autoreset, drone_vreset):
   """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
   refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""
   keys = jax.random.split(jax.random.PRNGKey(6), 2)
-  inline = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1)
-  bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1, refresh_in_step=False)
-  s = jax.jit(inline.reset)(keys)
+  _, reset, inline_step = drone_autoreset        # in-step refresh: a pool of 4, 2 entries refreshed per step
+  bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2, refresh_in_step=False)
+  s = reset(keys)                                      # AutoReset.reset does not depend on the refresh settings
   a = jnp.zeros((2, 3))
-  # one program for both steps (XLA shares the env step they have in common: one compile instead of two)
-  s_inline, s_bulk = jax.jit(lambda s: (inline.step(s, a), bulk.step(s, a)))(s)
+  s_inline, s_bulk = inline_step(s, a), jax.jit(bulk.step)(s, a)
   pool0 = np.asarray(s.info["reset_pool"].info["mission"].waypoints)
   np.testing.assert_array_equal(np.asarray(s_bulk.info["reset_pool"].info["mission"].waypoints), pool0)
   assert int(s_bulk.info["pool_refresh"]) == 0
@@ -452,23 +468,23 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
       np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-12)
     else:
       np.testing.assert_array_equal(x, y)
-  assert int(s_inline.info["pool_refresh"]) == 1
-  s_bulk3 = refresh(s_bulk, 3)
-  wp3 = np.asarray(s_bulk3.info["reset_pool"].info["mission"].waypoints)
-  changed = [not np.allclose(wp3[i], pool0[i]) for i in range(4)]
-  assert changed == [True, True, True, False] and int(s_bulk3.info["pool_refresh"]) == 3
-  # The whole pool from a pointer at 3 (reset in slot order, no scatter): entry j of the round robin in slot (3 + j) % 4
-  s_all = refresh(s_bulk3, 4)
-  assert int(s_all.info["pool_refresh"]) == 3
-  _, sub = jax.random.split(s_bulk3.info["reset_key"])
-  new = jax.jit(VmapWrapper(drone_env).reset)(jax.random.split(sub, 4))
-  slot_of_entry = [(3 + j) % 4 for j in range(4)]
+  assert int(s_inline.info["pool_refresh"]) == 2
+  wp1 = np.asarray(s_bulk1.info["reset_pool"].info["mission"].waypoints)
+  changed = [not np.allclose(wp1[i], pool0[i]) for i in range(4)]
+  assert changed == [True, True, False, False] and int(s_bulk1.info["pool_refresh"]) == 2
+  # The whole pool (min(4, 2 x 3) entries) from a pointer at 2 (reset in slot order, no scatter): entry j of the
+  # round robin in slot (2 + j) % 4
+  s_all = refresh(s_bulk1, 3)
+  assert int(s_all.info["pool_refresh"]) == 2
+  _, sub = jax.random.split(s_bulk1.info["reset_key"])
+  new = drone_vreset(jax.random.split(sub, 4))
+  slot_of_entry = [(2 + j) % 4 for j in range(4)]
   # Two programs again: an observation entry that is 0 up to rounding (1e-8, a velocity at rest) came out 5e-9 apart
   # when XLA fuses the reset's neighbours differently, hence atol 1e-7.
   for x, y in zip(jax.tree.leaves(new), jax.tree.leaves(s_all.info["reset_pool"])):
     x, y = np.asarray(x), np.asarray(y)
     np.testing.assert_allclose(y[slot_of_entry], x, rtol=1e-6, atol=1e-7)
-  assert not np.allclose(np.asarray(s_all.info["reset_pool"].info["mission"].waypoints)[3], wp3[3])
+  assert not np.allclose(np.asarray(s_all.info["reset_pool"].info["mission"].waypoints)[2], wp1[2])
 
 
 def test_velocity_setpoint_override():
@@ -479,7 +495,7 @@ def test_velocity_setpoint_override():
   def policy(obs, key):
     return jnp.broadcast_to(jnp.array([3.0, -2.0, 0.0]), obs.shape[:-1] + (3,))
 
-  state, traj, t = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(6), 2), 150, policy=policy)
+  state, traj, t = fly_batch(env, jax.random.split(jax.random.PRNGKey(6), 2), 150, policy)
   vel = np.asarray(state.info["sim"]["truth"].vel)
   assert np.all(np.asarray(state.info["sim"]["nav"].phase) == 1)   # cruising, under override
   np.testing.assert_allclose(vel[:, :2], [[3.0, -2.0]] * 2, atol=0.4)
@@ -487,24 +503,21 @@ def test_velocity_setpoint_override():
 
 def test_autoreset_in_chunks_equals_one_vmapped_reset(drone_env):
   """reset_chunk cuts the reset of the envs + pool (and the bulk pool refresh) into equal chunks run one after
-  another: 6 envs + 4 pool entries in chunks of 3 (4 chunks of 3, the last padded) give the states one vmapped
-  reset gives."""
-  keys = jax.random.split(jax.random.PRNGKey(11), 6)
+  another: 56 envs + 4 pool entries in chunks of 3 (20 chunks), and the pool's refresh (2 chunks of 3, the last
+  padded), give the states one vmapped reset gives; and the chunked reset's temporaries are those of one chunk."""
+  keys = jax.random.split(jax.random.PRNGKey(12), 56)    # 56 envs + the pool of 4: 60 resets, in chunks of 3 or not
   whole = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False)
   parts = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False, reset_chunk=3)
-
-  def both(env):
-    s = env.reset(keys)
-    return s, env.refresh_pool(s, 1)
-
-  (s1, r1), (s3, r3) = jax.jit(lambda: (both(whole), both(parts)))()
+  # one compiled reset each, run and measured (XLA's buffer assignment) both
+  compiled = [jax.jit(env.reset).lower(keys).compile() for env in (whole, parts)]
+  s1, s3 = (c(keys) for c in compiled)
+  r1, r3 = jax.jit(lambda s1, s3: (whole.refresh_pool(s1, 1), parts.refresh_pool(s3, 1)))(s1, s3)
   for a, b in zip(jax.tree.leaves((s1, r1.info["reset_pool"])), jax.tree.leaves((s3, r3.info["reset_pool"]))):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
   assert not np.allclose(np.asarray(r1.info["reset_pool"].info["mission"].waypoints),
                          np.asarray(s1.info["reset_pool"].info["mission"].waypoints))   # the refresh did regenerate
   with pytest.raises(ValueError, match="reset_chunk"):
     AutoReset(VmapWrapper(drone_env), reset_chunk=0)
-  # what the chunks are for: the reset's temporaries are those of one chunk (XLA's buffer assignment)
-  keys = jax.random.split(jax.random.PRNGKey(12), 56)    # 56 envs + the pool of 4: 60 resets, in chunks of 3 or not
-  temp = lambda env: jax.jit(env.reset).lower(keys).compile().memory_analysis().temp_size_in_bytes  # noqa: E731
-  assert temp(parts) < 0.25 * temp(whole)
+  # what the chunks are for: the reset's temporaries are those of one chunk
+  temp_whole, temp_parts = (c.memory_analysis().temp_size_in_bytes for c in compiled)
+  assert temp_parts < 0.25 * temp_whole
