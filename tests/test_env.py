@@ -340,35 +340,21 @@ def test_next_obs_is_the_next_steps_obs_unless_finished(drone_env, drone_autores
     s = s2
 
 
-@pytest.fixture(scope="module")
-def ekf_variants(drone_env, drone_vreset):
-  """(start state [2], action [2, 3], {variant: env, state after 3 steps}) of three drone envs stepped from the same
-  start in one program (a rolled loop: one copy of each env step; one compile for the two tests below): 'full' fuses
-  every GPS row on every tick and keeps the EKF's records (the CPU's default env), 'skip' leaves the GPS rows out of
-  the EKF on its stale ticks, 'no_records' is 'full' with EnvConfig.ekf_records=False."""
+def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env, drone_vreset):
+  """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
+  every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
   import copy
   env_skip, env_full = copy.copy(drone_env), copy.copy(drone_env)
   env_skip._gps_period, env_full._gps_period = 5, None
-  env_off = copy.copy(env_full)
-  env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
-  envs_ = {"full": env_full, "skip": env_skip, "no_records": env_off}
-  s = drone_vreset(jax.random.split(jax.random.PRNGKey(9), 2))
-  a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
-
-  def three(env, s):   # a rolled loop: one copy of each env step in the program
-    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
-  out = jax.jit(lambda s: {n: three(e, s) for n, e in envs_.items()})(s)
-  return s, a, {n: (envs_[n], out[n]) for n in envs_}
-
-
-def test_ekf_gps_rows_left_out_only_where_gps_is_stale(ekf_variants):
-  """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
-  every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
-  s, a, v = ekf_variants
-  (env_skip, out_skip), (env_full, out_full) = v["skip"], v["full"]
+  s = drone_vreset(jax.random.split(jax.random.PRNGKey(8), 2))
+  a = jnp.zeros((2, 3))
   jaxpr_skip, jaxpr_full = (str(jax.make_jaxpr(jax.vmap(e.step))(s, a)) for e in (env_skip, env_full))
   # the 4 GPS-free ticks as a scan, the GPS tick after it: no lax.cond
   assert "length=4" in jaxpr_skip and "length=4" not in jaxpr_full and "cond" not in jaxpr_skip
+
+  def three(env, s):   # a rolled loop: one copy of each env step in the program
+    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
+  out_skip, out_full = jax.jit(lambda s: (three(env_skip, s), three(env_full, s)))(s)
   # The same filter in two programs, which XLA fuses (and so rounds) differently: float32 rounding apart (a flow
   # innovation of 0.03 was 1.3e-7 apart on the CI machine), far below any difference a wrong GPS schedule makes.
   for name in ("pos", "vel", "quat", "P", "test_ratio", "accepted", "innov", "gps_pos_age"):
@@ -421,13 +407,20 @@ def test_unrolled_ticks_run_the_same_ticks(drone_env):
   assert envs.make("rover", unroll_ticks=True).config.unroll_ticks
 
 
-def test_env_without_ekf_records_is_the_same_env(ekf_variants):
+def test_env_without_ekf_records_is_the_same_env(drone_env, drone_vreset):
   """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
   per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,
   STL monitor and episode record equal the env's with them (float32 rounding: two programs); the residual detector,
   which reads them, refuses the setting."""
-  s, _, v = ekf_variants
-  (_, on), (_, off) = v["full"], v["no_records"]
+  import copy
+  env_off = copy.copy(drone_env)
+  env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
+  s = drone_vreset(jax.random.split(jax.random.PRNGKey(9), 2))
+  a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
+
+  def three(env, s):
+    return jax.lax.fori_loop(0, 3, lambda _, s: jax.vmap(env.step)(s, a), s)
+  on, off = jax.jit(lambda s: (three(drone_env, s), three(env_off, s)))(s)
   ekf0, ekf_on, ekf_off = (x.info["sim"]["ekf"] for x in (s, on, off))
   for name in ekf_lib.RECORD_FIELDS:
     np.testing.assert_array_equal(np.asarray(getattr(ekf_off, name)), np.asarray(getattr(ekf0, name)), name)
@@ -450,11 +443,12 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autorese
   """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
   refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""
   keys = jax.random.split(jax.random.PRNGKey(6), 2)
-  _, reset, inline_step = drone_autoreset        # in-step refresh: a pool of 4, 2 entries refreshed per step
-  bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=2, refresh_in_step=False)
-  s = reset(keys)                                      # AutoReset.reset does not depend on the refresh settings
+  inline = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1)
+  bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1, refresh_in_step=False)
+  s = drone_autoreset[1](keys)   # the same program as inline.reset (AutoReset.reset reads no refresh setting)
   a = jnp.zeros((2, 3))
-  s_inline, s_bulk = inline_step(s, a), jax.jit(bulk.step)(s, a)
+  # one program for both steps (XLA shares the env step they have in common: one compile instead of two)
+  s_inline, s_bulk = jax.jit(lambda s: (inline.step(s, a), bulk.step(s, a)))(s)
   pool0 = np.asarray(s.info["reset_pool"].info["mission"].waypoints)
   np.testing.assert_array_equal(np.asarray(s_bulk.info["reset_pool"].info["mission"].waypoints), pool0)
   assert int(s_bulk.info["pool_refresh"]) == 0
@@ -468,23 +462,23 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autorese
       np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-12)
     else:
       np.testing.assert_array_equal(x, y)
-  assert int(s_inline.info["pool_refresh"]) == 2
-  wp1 = np.asarray(s_bulk1.info["reset_pool"].info["mission"].waypoints)
-  changed = [not np.allclose(wp1[i], pool0[i]) for i in range(4)]
-  assert changed == [True, True, False, False] and int(s_bulk1.info["pool_refresh"]) == 2
-  # The whole pool (min(4, 2 x 3) entries) from a pointer at 2 (reset in slot order, no scatter): entry j of the
-  # round robin in slot (2 + j) % 4
-  s_all = refresh(s_bulk1, 3)
-  assert int(s_all.info["pool_refresh"]) == 2
-  _, sub = jax.random.split(s_bulk1.info["reset_key"])
+  assert int(s_inline.info["pool_refresh"]) == 1
+  s_bulk3 = refresh(s_bulk, 3)
+  wp3 = np.asarray(s_bulk3.info["reset_pool"].info["mission"].waypoints)
+  changed = [not np.allclose(wp3[i], pool0[i]) for i in range(4)]
+  assert changed == [True, True, True, False] and int(s_bulk3.info["pool_refresh"]) == 3
+  # The whole pool from a pointer at 3 (reset in slot order, no scatter): entry j of the round robin in slot (3 + j) % 4
+  s_all = refresh(s_bulk3, 4)
+  assert int(s_all.info["pool_refresh"]) == 3
+  _, sub = jax.random.split(s_bulk3.info["reset_key"])
   new = drone_vreset(jax.random.split(sub, 4))
-  slot_of_entry = [(2 + j) % 4 for j in range(4)]
+  slot_of_entry = [(3 + j) % 4 for j in range(4)]
   # Two programs again: an observation entry that is 0 up to rounding (1e-8, a velocity at rest) came out 5e-9 apart
   # when XLA fuses the reset's neighbours differently, hence atol 1e-7.
   for x, y in zip(jax.tree.leaves(new), jax.tree.leaves(s_all.info["reset_pool"])):
     x, y = np.asarray(x), np.asarray(y)
     np.testing.assert_allclose(y[slot_of_entry], x, rtol=1e-6, atol=1e-7)
-  assert not np.allclose(np.asarray(s_all.info["reset_pool"].info["mission"].waypoints)[2], wp1[2])
+  assert not np.allclose(np.asarray(s_all.info["reset_pool"].info["mission"].waypoints)[3], wp3[3])
 
 
 def test_velocity_setpoint_override():
@@ -503,21 +497,24 @@ def test_velocity_setpoint_override():
 
 def test_autoreset_in_chunks_equals_one_vmapped_reset(drone_env):
   """reset_chunk cuts the reset of the envs + pool (and the bulk pool refresh) into equal chunks run one after
-  another: 56 envs + 4 pool entries in chunks of 3 (20 chunks), and the pool's refresh (2 chunks of 3, the last
-  padded), give the states one vmapped reset gives; and the chunked reset's temporaries are those of one chunk."""
-  keys = jax.random.split(jax.random.PRNGKey(12), 56)    # 56 envs + the pool of 4: 60 resets, in chunks of 3 or not
+  another: 6 envs + 4 pool entries in chunks of 3 (4 chunks of 3, the last padded) give the states one vmapped
+  reset gives."""
+  keys = jax.random.split(jax.random.PRNGKey(11), 6)
   whole = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False)
   parts = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=4, refresh_in_step=False, reset_chunk=3)
-  # one compiled reset each, run and measured (XLA's buffer assignment) both
-  compiled = [jax.jit(env.reset).lower(keys).compile() for env in (whole, parts)]
-  s1, s3 = (c(keys) for c in compiled)
-  r1, r3 = jax.jit(lambda s1, s3: (whole.refresh_pool(s1, 1), parts.refresh_pool(s3, 1)))(s1, s3)
+
+  def both(env):
+    s = env.reset(keys)
+    return s, env.refresh_pool(s, 1)
+
+  (s1, r1), (s3, r3) = jax.jit(lambda: (both(whole), both(parts)))()
   for a, b in zip(jax.tree.leaves((s1, r1.info["reset_pool"])), jax.tree.leaves((s3, r3.info["reset_pool"]))):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
   assert not np.allclose(np.asarray(r1.info["reset_pool"].info["mission"].waypoints),
                          np.asarray(s1.info["reset_pool"].info["mission"].waypoints))   # the refresh did regenerate
   with pytest.raises(ValueError, match="reset_chunk"):
     AutoReset(VmapWrapper(drone_env), reset_chunk=0)
-  # what the chunks are for: the reset's temporaries are those of one chunk
-  temp_whole, temp_parts = (c.memory_analysis().temp_size_in_bytes for c in compiled)
-  assert temp_parts < 0.25 * temp_whole
+  # what the chunks are for: the reset's temporaries are those of one chunk (XLA's buffer assignment)
+  keys = jax.random.split(jax.random.PRNGKey(12), 56)    # 56 envs + the pool of 4: 60 resets, in chunks of 3 or not
+  temp = lambda env: jax.jit(env.reset).lower(keys).compile().memory_analysis().temp_size_in_bytes  # noqa: E731
+  assert temp(parts) < 0.25 * temp(whole)
