@@ -41,10 +41,6 @@ def drone_vreset(drone_env):
   return jax.jit(VmapWrapper(drone_env).reset)
 
 
-# rollout.fly_batch as one program (env, max_steps and policy static): the batch's reset compiled with its steps
-fly_batch = jax.jit(rollout.fly_batch, static_argnums=(0, 2, 3))
-
-
 @pytest.fixture(scope="module")
 def rover_env():
   return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
@@ -144,7 +140,7 @@ def test_autopilot_completes_missions_compliantly(vehicle, drone_env, rover_env)
   mission spec (online STL monitor over the whole episode) is satisfied."""
   env = drone_env if vehicle == "drone" else rover_env
   keys = jax.random.split(jax.random.PRNGKey(11), 4)
-  state, traj, t = fly_batch(env, keys, 1200)
+  state, traj, t = rollout.fly_batch(env, keys, 1200)
   s = rollout.summarize(state)
   assert s["complete"] == 4, s
   assert s["collision"] == s["crash"] == s["stall"] == s["fence_breach"] == s["nan"] == 0
@@ -489,7 +485,7 @@ def test_velocity_setpoint_override():
   def policy(obs, key):
     return jnp.broadcast_to(jnp.array([3.0, -2.0, 0.0]), obs.shape[:-1] + (3,))
 
-  state, traj, t = fly_batch(env, jax.random.split(jax.random.PRNGKey(6), 2), 150, policy)
+  state, traj, t = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(6), 2), 150, policy=policy)
   vel = np.asarray(state.info["sim"]["truth"].vel)
   assert np.all(np.asarray(state.info["sim"]["nav"].phase) == 1)   # cruising, under override
   np.testing.assert_allclose(vel[:, :2], [[3.0, -2.0]] * 2, atol=0.4)
