@@ -36,6 +36,12 @@ def drone_reset(drone_env):
 
 
 @pytest.fixture(scope="module")
+def drone_vreset(drone_env):
+  """The drone env's reset vmapped over a [B] key batch, compiled once per batch size for the tests below."""
+  return jax.jit(VmapWrapper(drone_env).reset)
+
+
+@pytest.fixture(scope="module")
 def rover_env():
   return envs.make("rover", world="urban_city_streets", mission=SHORT_ROVER)
 
@@ -274,13 +280,13 @@ def drone_autoreset(drone_env):
   return env, jax.jit(env.reset), jax.jit(env.step)
 
 
-def test_autoreset_reset_is_the_envs_and_the_pool_reset_apart(drone_env, drone_autoreset):
+def test_autoreset_reset_is_the_envs_and_the_pool_reset_apart(drone_autoreset, drone_vreset):
   """AutoReset.reset resets the envs and the pool in one vmapped call: each env and pool entry is what resetting it
   alone from its key gives (the keys, and so a seed's episodes, are unchanged), to float rounding."""
   _, reset, _ = drone_autoreset
   keys = jax.random.split(jax.random.PRNGKey(5), 2)
   s = reset(keys)
-  alone = jax.jit(VmapWrapper(drone_env).reset)
+  alone = drone_vreset
   k_pool, _ = jax.random.split(jax.random.fold_in(keys[0], 0x5eed))
   envs = alone(keys)
   for got, want in ((s.replace(info={k: v for k, v in s.info.items() if k in envs.info}), envs),
@@ -330,13 +336,13 @@ def test_next_obs_is_the_next_steps_obs_unless_finished(drone_env, drone_autores
     s = s2
 
 
-def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env):
+def test_ekf_gps_rows_left_out_only_where_gps_is_stale(drone_env, drone_vreset):
   """The env step with the GPS rows left out of the EKF on its stale ticks equals the step that fuses every row on
   every tick (a GPS sample dropped by mistake would move the estimate). The skip is on by default off the CPU only."""
   import copy
   env_skip, env_full = copy.copy(drone_env), copy.copy(drone_env)
   env_skip._gps_period, env_full._gps_period = 5, None
-  s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(8), 2))
+  s = drone_vreset(jax.random.split(jax.random.PRNGKey(8), 2))
   a = jnp.zeros((2, 3))
   jaxpr_skip, jaxpr_full = (str(jax.make_jaxpr(jax.vmap(e.step))(s, a)) for e in (env_skip, env_full))
   # the 4 GPS-free ticks as a scan, the GPS tick after it: no lax.cond
@@ -397,7 +403,7 @@ def test_unrolled_ticks_run_the_same_ticks(drone_env):
   assert envs.make("rover", unroll_ticks=True).config.unroll_ticks
 
 
-def test_env_without_ekf_records_is_the_same_env(drone_env):
+def test_env_without_ekf_records_is_the_same_env(drone_env, drone_vreset):
   """EnvConfig.ekf_records=False (the trainer's env unless it trains with the residual detector) leaves the EKF's
   per-channel records at their reset values and changes nothing else: physics, estimate, P, observation, reward,
   STL monitor and episode record equal the env's with them (float32 rounding: two programs); the residual detector,
@@ -405,7 +411,7 @@ def test_env_without_ekf_records_is_the_same_env(drone_env):
   import copy
   env_off = copy.copy(drone_env)
   env_off.config = dataclasses.replace(drone_env.config, ekf_records=False)
-  s = jax.jit(jax.vmap(drone_env.reset))(jax.random.split(jax.random.PRNGKey(9), 2))
+  s = drone_vreset(jax.random.split(jax.random.PRNGKey(9), 2))
   a = jnp.tile(jnp.array([[0.5, -0.3, 0.2]]), (2, 1))
 
   def three(env, s):
@@ -429,13 +435,13 @@ def test_env_without_ekf_records_is_the_same_env(drone_env):
     envs.make("drone", detector="residual", ekf_records=False)
 
 
-def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
+def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autoreset, drone_vreset):
   """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
   refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""
   keys = jax.random.split(jax.random.PRNGKey(6), 2)
   inline = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1)
   bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1, refresh_in_step=False)
-  s = jax.jit(inline.reset)(keys)
+  s = drone_autoreset[1](keys)   # the same program as inline.reset (AutoReset.reset reads no refresh setting)
   a = jnp.zeros((2, 3))
   # one program for both steps (XLA shares the env step they have in common: one compile instead of two)
   s_inline, s_bulk = jax.jit(lambda s: (inline.step(s, a), bulk.step(s, a)))(s)
@@ -461,7 +467,7 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env):
   s_all = refresh(s_bulk3, 4)
   assert int(s_all.info["pool_refresh"]) == 3
   _, sub = jax.random.split(s_bulk3.info["reset_key"])
-  new = jax.jit(VmapWrapper(drone_env).reset)(jax.random.split(sub, 4))
+  new = drone_vreset(jax.random.split(sub, 4))
   slot_of_entry = [(3 + j) % 4 for j in range(4)]
   # Two programs again: an observation entry that is 0 up to rounding (1e-8, a velocity at rest) came out 5e-9 apart
   # when XLA fuses the reset's neighbours differently, hence atol 1e-7.

@@ -3,6 +3,7 @@ interrupted + resumed twin that ends bit-identical, the CLI's one-line errors, a
 (phase 1 + adversarial phase 2 + ONNX parity) asserting real outcomes."""
 
 import dataclasses
+import functools
 import json
 import os
 import re
@@ -256,13 +257,19 @@ def test_trainer_envs_keep_the_ekf_records_only_for_the_residual_detector():
     assert (env.config.nan_fallback, env.config.ekf_records) == (False, want), (detector, phase)
 
 
-def _dot_precisions(cfg, phase, precision=True):
-  """[(bf16?, names of the scopes it was traced in)] of every dot_general in the lowered phase program. bf16: the
-  dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
+@functools.lru_cache(maxsize=4)
+def _lowered_phase_text(cfg, phase):
+  """The lowered phase program's text with its debug locations (kept: the default config's serves both tests)."""
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
   c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))
-  txt = ph.run.lower(c).as_text(debug_info=True)
+  return ph.run.lower(c).as_text(debug_info=True)
+
+
+def _dot_precisions(cfg, phase, precision=True):
+  """[(bf16?, names of the scopes it was traced in)] of every dot_general in the lowered phase program. bf16: the
+  dot's precision config rounds its inputs to bf16 (precision=True), or its result is a bf16 tensor (False)."""
+  txt = _lowered_phase_text(cfg, phase)
   locs = dict(re.findall(r"^(#loc\d+) = (.*)$", txt, re.M))
 
   def names(ref, depth=0):   # a location's own names and those of the locations it refers to
@@ -547,7 +554,10 @@ def runs(tmp_path_factory):
     full = runner.train(cfg, str(root / "full"), progress=False, compile_ahead=True)
   finally:
     ahead_compiles, _COMPILES["log"] = _COMPILES["log"], None
-  part = runner.train(cfg, str(root / "part"), progress=False, export=False, stop_after_calls=3)
+  # The interrupted twin skips the held-out evaluation (host-side, after training: program_config leaves it out, so
+  # both twins run the same compiled phases); its resumes read eval_missions=0 from its config.json.
+  twin = dataclasses.replace(cfg, eval_missions=0)
+  part = runner.train(twin, str(root / "part"), progress=False, export=False, stop_after_calls=3)
   shutil.copytree(root / "part", root / "cut")   # the same stop, for the phase-boundary resume below
   _COMPILES["on"] = True
   try:
@@ -603,8 +613,9 @@ def test_compile_ahead_compiles_phase_2_and_the_evaluation_once_off_the_main_thr
 
 def test_sweep_compiles_phase_2_ahead_once(tmp_path):
   """A vmapped two-phase sweep with compile_ahead: phase 2's (member-batched) init and run compile once, on the
-  compile-ahead thread, and both members train."""
-  cfg = tiny(alternate_iters=2, **TWO_PHASE)
+  compile-ahead thread, and both members train. (Phase 2 without the reconstruction and the scripted campaigns: a
+  smaller program to compile, the same compile schedule.)"""
+  cfg = tiny(env=dict(reconstruction=False), campaign_share=0.0, alternate_iters=2, **TWO_PHASE)
   _COMPILES["log"] = []
   try:
     sw = runner.train_sweep([cfg, dataclasses.replace(cfg, seed=4)], ["a", "b"], str(tmp_path), progress=False,
