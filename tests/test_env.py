@@ -435,13 +435,13 @@ def test_env_without_ekf_records_is_the_same_env(drone_env, drone_vreset):
     envs.make("drone", detector="residual", ekf_records=False)
 
 
-def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autoreset, drone_vreset):
+def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_vreset):
   """refresh_in_step=False leaves the pool alone in step; refresh_pool(state, 1) then gives the state the in-step
   refresh gives (same entries, same keys), and refresh_pool(state, k) regenerates min(pool, refresh x k) entries."""
   keys = jax.random.split(jax.random.PRNGKey(6), 2)
   inline = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1)
   bulk = AutoReset(VmapWrapper(drone_env), pool_size=4, refresh=1, refresh_in_step=False)
-  s = drone_autoreset[1](keys)   # the same program as inline.reset (AutoReset.reset reads no refresh setting)
+  s = jax.jit(inline.reset)(keys)
   a = jnp.zeros((2, 3))
   # one program for both steps (XLA shares the env step they have in common: one compile instead of two)
   s_inline, s_bulk = jax.jit(lambda s: (inline.step(s, a), bulk.step(s, a)))(s)
@@ -451,11 +451,12 @@ def test_autoreset_bulk_refresh_equals_in_step_refresh(drone_env, drone_autorese
   refresh = jax.jit(bulk.refresh_pool, static_argnums=1)
   s_bulk1 = refresh(s_bulk, 1)
   # Same entries from the same keys; the two programs may round a float differently (XLA fuses the reset into
-  # different neighbours in each, e.g. a domain-randomisation scale 1 ulp apart), so floats to 1e-6 relative.
+  # different neighbours in each, e.g. a domain-randomisation scale 1 ulp apart), so floats to 1e-6 relative, and
+  # 1e-7 absolute for entries that are 0 up to rounding (an observed acceleration at rest came out 2e-9 apart).
   for x, y in zip(jax.tree.leaves(s_inline), jax.tree.leaves(s_bulk1)):
     x, y = np.asarray(x), np.asarray(y)
     if np.issubdtype(x.dtype, np.floating):
-      np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-12)
+      np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
     else:
       np.testing.assert_array_equal(x, y)
   assert int(s_inline.info["pool_refresh"]) == 1
