@@ -30,11 +30,12 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from specguard_jax.autopilot.navigator import PHASE_NAMES
 from specguard_jax.types import SENSOR_NAMES
 
 LAYOUT_VERSION = 1
 LAYOUTS = ("paper24", "recovery", "context")
-PHASES = 4   # navigator.PHASE_NAMES before "done"
+PHASES = len(PHASE_NAMES) - 1   # every navigator phase but "done"
 TIME_CAP_S = 60.0
 STD_CAP = 100.0
 

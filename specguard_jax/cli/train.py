@@ -108,9 +108,9 @@ def _parser() -> _Parser:
                help="QGroundControl mission (.plan or QGC WPL 110) every episode flies, with its geofence and rally "
                     "points (default: generated missions)")
   _config_flag(ap, "--reward", key="env.reward", choices=REWARDS,
-               help="compliance: the paper's sigmoids; capped: 1 while a spec holds, the sigmoid only where it is violated "
-                    "(specguard_jax/rewards/reward.py); binary: 1/0 per spec; survival: 1 per step in flight, no "
-                    "specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
+               help="compliance: the paper's sigmoids; capped: 1 while a spec holds, the sigmoid only where it is "
+                    "violated (specguard_jax/rewards/reward.py); binary: 1/0 per spec; survival: 1 per step in "
+                    "flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
   _config_flag(ap, "--action", key="action", choices=("gaussian", "discrete"),
                help="continuous velocity setpoint or the paper's 6")
   _config_flag(ap, "--no-reconstruction", key="env.reconstruction", action="store_const", const=False,

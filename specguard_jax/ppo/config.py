@@ -128,7 +128,7 @@ class TrainConfig:
   step of a residual setpoint while it is in effect, action_cost * mean((setpoint / speeds)^2) in reward units
   (0..action_cost per step; residual actions only, not the paper's absolute moves; the attack agent's zero-sum
   reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
-  spec reward is flat (the capped reward, docs/DESIGN.md "Reward").
+  spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).

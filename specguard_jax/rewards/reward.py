@@ -84,10 +84,10 @@ class RewardFn:
         out.append(jnp.zeros(shape, jnp.float32))
         continue
       fs = tuple(predicate_value(e, sig) for e in t.exprs)
-      margin = families.margin(t.family, fs, t.threshold)
       if binary:
-        r = (margin >= 0).astype(jnp.float32)
+        r = (families.margin(t.family, fs, t.threshold) >= 0).astype(jnp.float32)
       elif capped:
+        margin = families.margin(t.family, fs, t.threshold)
         holds = evaluate(t.body, sig) >= 0 if t.body is not None else margin >= 0
         r = jnp.where(holds, 1.0, jnp.minimum(2.0 * families.sigmoid(t.k * margin), 1.0))
       else:
