@@ -9,6 +9,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
+from envs import observation as obs_lib
 from specguard_jax import export as ex
 from specguard_jax.ppo.networks import DIRECTIONS, Policy
 
@@ -22,15 +23,15 @@ def _normalizer(seed=1, n_obs=N_OBS):
           "std": rng.uniform(0.05, 20.0, n_obs).astype(np.float32)}
 
 
-def _policy(kind, hidden, activation="tanh", seed=0, final_gain=30.0, flax_init=False):
+def _policy(kind, hidden, activation="tanh", seed=0, final_gain=30.0, flax_init=False, n_obs=N_OBS):
   """Random policy params (Policy.init when flax_init, else numpy Gaussians with the same layout, which skips the
   init's XLA compile); the final layer is scaled up so logits/means are O(1) rather than O(0.01)."""
   pol = Policy(kind, 6 if kind == "discrete" else 3, hidden=hidden, activation=activation)
   rng = np.random.default_rng(seed)
   if flax_init:
-    params = jax.tree_util.tree_map(np.asarray, jax.jit(pol.init, static_argnums=1)(jax.random.PRNGKey(seed), N_OBS))
+    params = jax.tree_util.tree_map(np.asarray, jax.jit(pol.init, static_argnums=1)(jax.random.PRNGKey(seed), n_obs))
   else:
-    sizes = (N_OBS,) + tuple(hidden) + (pol.n,)
+    sizes = (n_obs,) + tuple(hidden) + (pol.n,)
     params = {"net": {f"dense_{i}": {"kernel": (rng.standard_normal((a, b)) / np.sqrt(a)).astype(np.float32),
                                      "bias": (0.1 * rng.standard_normal(b)).astype(np.float32)}
                       for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:]))}}
@@ -184,6 +185,28 @@ def test_save_load_round_trip(tmp_path, kind):
   # ... and the exported graph of the loaded policy agrees with it.
   res = ex.export_onnx(str(tmp_path / "p.onnx"), *ex.load_policy(run)[:4], clip=clip2, latency_calls=0)
   assert res["max_abs_diff"] <= 1e-5 and res["argmax_equal"]
+
+
+@pytest.mark.parametrize("layout", obs_lib.LAYOUTS)
+def test_every_observation_layout_round_trips_and_exports_with_parity(tmp_path, layout):
+  """A policy of each observation layout (the trainer's proximity ring of 8 sectors): policy_config.json records the
+  layout, load_obs_layout reads it back, the ONNX graph (the layout in its metadata, as the runner writes it) agrees
+  with the JAX policy; a layout whose size is not the policy's input is a clear error."""
+  desc = obs_lib.describe(layout, 8)
+  n_obs = obs_lib.size(layout, 8)
+  pol, params = _policy("gaussian", (32, 16), n_obs=n_obs)
+  norm = _normalizer(n_obs=n_obs)
+  run = str(tmp_path / "run")
+  ex.save_policy(run, pol, params, norm, SPEEDS, 10.0, obs_layout=desc)
+  assert ex.load_obs_layout(run) == desc
+  res = ex.export_onnx(str(tmp_path / "p.onnx"), *ex.load_policy(run)[:4], clip=10.0, latency_calls=0,
+                       metadata={"obs_layout": desc})
+  assert res["n_obs"] == n_obs and res["max_abs_diff"] <= 1e-5
+  meta = {p.key: p.value for p in onnx.load(str(tmp_path / "p.onnx")).metadata_props}
+  assert json.loads(meta["obs_layout"]) == desc
+  other = next(x for x in obs_lib.LAYOUTS if obs_lib.size(x, 8) != n_obs)
+  with pytest.raises(ValueError, match=f"has {obs_lib.size(other, 8)} inputs, the policy takes {n_obs}"):
+    ex.save_policy(str(tmp_path / "bad"), pol, params, norm, SPEEDS, 10.0, obs_layout=obs_lib.describe(other, 8))
 
 
 def test_corrupt_or_missing_files(tmp_path):

@@ -162,3 +162,39 @@ def test_s12_pays_beside_a_keep_out_prism_taller_than_the_vehicle():
   near = {**beside, "fence_margin": jnp.array(2.0), "fence_h": jnp.array(2.0)}
   r_far, r_near = (float(np.asarray(rewards.reward(s, d)[1])[i]) for s in (beside, near))
   assert r_far > 0.99 and r_near < r_far
+
+
+def test_violation_onset_counts_each_violated_spec_once_on_the_step_it_is_violated():
+  """TrainConfig.violation_penalty's count, fed by the env's online STL monitor over a 12-step trace: S1 (critical)
+  and S6 (obstacle within 5 m) from step 4 on, S9 (landing faster than 0.5 m/s) at step 7 only. Each counts once, weighted,
+  on its step; the per-episode sum equals the weighted count of specs violated at the end (the SVR verdict)."""
+  d = specs.drone_specs()
+  ev = specs.compile_specs(d, 0.1)
+  w = np.asarray(rewards.RewardFn.create(d).weights(critical_weight=3.0))
+  n = 12
+  trace = []
+  for t in range(n):
+    s = _signals()
+    if t >= 4:
+      s["obstacle_distance"] = jnp.array(2.0)
+    if t >= 6:
+      s.update(in_cruise=jnp.array(0.0), in_landing=jnp.array(1.0), descent_speed=jnp.array(0.3))
+    if t == 7:
+      s["descent_speed"] = jnp.array(1.5)
+    trace.append(s)
+  monitor, before, _ = ev.monitor_update(ev.monitor_init(), trace[0])
+  counts = []
+  for s in trace[1:]:
+    monitor, after, _ = ev.monitor_update(monitor, s)
+    counts.append(float(rewards.violation_onset(before, after, w)))
+    before = after
+  i1, i6, i9 = (d.names.index(k) for k in ("S1", "S6", "S9"))
+  expect = np.zeros(n - 1)
+  expect[3] += w[i1] + w[i6]                 # trace step 4 is transition 3
+  expect[6] += w[i9]
+  assert (w[i1], w[i6], w[i9]) == (3.0, 1.0, 1.0)
+  np.testing.assert_allclose(counts, expect)
+  final_violated = np.asarray(before) < 0
+  assert np.isclose(sum(counts), np.sum(w * final_violated))
+  # NaN robustness (a failed physics step) counts as no onset
+  assert float(rewards.violation_onset(jnp.zeros(12), jnp.full(12, jnp.nan), w)) == 0.0

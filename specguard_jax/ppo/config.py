@@ -128,7 +128,11 @@ class TrainConfig:
   step of a residual setpoint while it is in effect, action_cost * mean((setpoint / speeds)^2) in reward units
   (0..action_cost per step; residual actions only, not the paper's absolute moves; the attack agent's zero-sum
   reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
-  spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").
+  spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").  violation_penalty: the SpecGuard
+  agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight (critical_weight for critical specs,
+  1 otherwise, 0 for monitored-only ones) on the step a spec's episode robustness first turns negative (the online
+  STL monitor: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a violation costs what a
+  compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md "Reward incentives").
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
@@ -164,6 +168,7 @@ class TrainConfig:
   converge_window: int = 20
   completion_bonus: float = -1.0
   action_cost: float = 0.0
+  violation_penalty: float = 0.0
   obs_clip: float = 10.0
   sg: PPOConfig = PPOConfig()
   aa: PPOConfig = PPOConfig(ent_coef=0.01)
@@ -256,6 +261,7 @@ class TrainConfig:
     for name in ("init_log_std", "attack_alpha", "attack_beta", "attack_gamma", "completion_bonus"):
       checks.number(name, getattr(self, name))
     checks.number("action_cost", self.action_cost, 0)
+    checks.number("violation_penalty", self.violation_penalty, 0)
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
     checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
     checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)

@@ -9,7 +9,7 @@ the loop unless disabled. Iterations alternate: `alternate_iters` iterations upd
 reverse; the turn is data in the carry, so both branches are one compiled program (lax.cond).
 
 Reward seen by SG: the env's per-step compliance reward (in [0, 1] normalised) + the completion bonus on mission
-completion; AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
+completion - the violation penalty on the step a spec becomes violated (TrainConfig.violation_penalty); AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
 reached the vehicle (override active: a phase of override_phases, and the alarm up for RC); its value function
 learns from all.
 """
@@ -36,6 +36,7 @@ from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import campaign_mix
 from specguard_jax.ppo import distributed, losses, networks
+from specguard_jax import rewards as rewards_lib
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
 from specguard_jax.types import RESIDUAL_DETECTORS, SENSOR_NAMES
 
@@ -231,6 +232,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   crit = np.asarray(base.spec_table.critical)    # critical specs (S1, S2, S12 by default) of the env's table
   gamma = cfg.sg.gamma
   bonus = (-cfg.completion_bonus / (1.0 - gamma)) if cfg.completion_bonus < 0 else cfg.completion_bonus
+  violation_cost = cfg.violation_penalty / (1.0 - gamma)
+  spec_weights = base.reward_fn.weights(base.config.critical_weight)   # [n_specs]
   rc = adversarial and cfg.variant == "rc"
   B = cfg.num_envs
 
@@ -284,6 +287,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     complete = last["complete"] * done
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
+    if cfg.violation_penalty > 0:   # a spec violated in this step (its episode robustness turned negative)
+      r_sg = r_sg - violation_cost * rewards_lib.violation_onset(
+          state.info["spec_robustness"], info["final_spec_robustness"], spec_weights)
     final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg

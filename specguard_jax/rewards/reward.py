@@ -120,6 +120,17 @@ def binary_reward(signals_t: Mapping[str, jnp.ndarray], table: SpecTable, normal
   return RewardFn.create(table)(signals_t, normalize, critical_weight, binary=True)
 
 
+def violation_onset(robustness_before, robustness_after, weights) -> jnp.ndarray:
+  """Weighted count [...] of the specs whose episode robustness turns negative in one step,
+  sum_i w_i [after_i < 0 <= before_i] (robustness [..., n] of the online STL monitor before and after the step;
+  weights [n], RewardFn.weights). The monitor's robustness of `always(...)` over the episode so far never rises, so
+  each spec counts at most once per episode: on the step the mission becomes a violation of it (the SVR verdict).
+  A NaN robustness counts as no onset (the step that produced it ends the episode as a failure anyway)."""
+  before, after = jnp.asarray(robustness_before), jnp.asarray(robustness_after)
+  onset = (after < 0) & (before >= 0)
+  return jnp.sum(jnp.where(onset, jnp.asarray(weights, jnp.float32), 0.0), axis=-1)
+
+
 def survival_reward(failed) -> jnp.ndarray:
   """Survival reward of the FTC baseline (specguard_jax.baselines.ftc; no spec terms): 1.0 per step the vehicle
   flies on, 0.0 on the step it crashes, collides or its physics fails (`failed` [...] bool; the episode ends there)."""
