@@ -169,6 +169,21 @@ def t2r(r, dt: float) -> np.ndarray:
   return np.where(applicable, val, np.nan)
 
 
+def violation_timing(r) -> dict:
+  """Where the violations of attacked missions happen against the alarm, each a rate among the attacked missions
+  that violated (violation(): a spec, a crash or a collision):
+    undetected    no alarm at or after the attack's onset;
+    outside       an alarm, but every spec was compliant from it to the attack's end (or the episode's): the
+                  violation happened before the alarm or after the attack;
+    alarm_window  some spec non-compliant between the alarm and the attack's end (record bad_t): the only missions
+                  a reactive (RC) policy, in control while the alarm is up, can change."""
+  viol = violation(r) & _b(r, "attacked")
+  detected = np.asarray(r["det_t"], float) < BIG / 2
+  window = detected & (np.asarray(r["bad_t"], float) < BIG / 2)
+  return {"undetected": rate(viol & ~detected, viol), "outside": rate(viol & detected & ~window, viol),
+          "alarm_window": rate(viol & window, viol)}
+
+
 def mcnemar(a, b) -> dict:
   """McNemar's exact test of two paired boolean outcomes a, b [n] (e.g. 'violated' for two controllers on the same
   missions): {'b': a and not b, 'c': b and not a, 'n': pairs, 'p': two-sided exact p-value}. Conditional on the
@@ -257,6 +272,7 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
     out["detect_rate"] = rate(detected, _b(r, "attacked"))
     out["detection_delay"] = _stats(np.where(detected & _b(r, "attacked"), det - np.asarray(r["onset"]), np.nan))
     out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < np.asarray(r["onset"], float))
+    out["violation_timing"] = violation_timing(r)
   else:
     out["false_alarm_rate"] = rate(np.asarray(r["first_alarm"], float) < BIG / 2)
   if "action_sum" in r:   # the policy's effect: its setpoint's size over the steps it was in control

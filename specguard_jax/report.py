@@ -324,11 +324,11 @@ def _f(x, nd=1):
   return f"{x:.{nd}f}"
 
 
-def _ci(rate):
+def _ci(rate, with_n: bool = True):
   if not rate or rate.get("value") is None:
     return "n/a"
   lo, hi = rate["ci"]
-  return f"{100 * rate['value']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}] (n={rate['n']})"
+  return f"{100 * rate['value']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]" + (f" (n={rate['n']})" if with_n else "")
 
 
 def markdown(rep) -> str:
@@ -351,6 +351,7 @@ def markdown(rep) -> str:
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
   L += hard_markdown(ex.get("hard"))
+  L += violation_timing_markdown(rep)
   L += redteam_markdown(rep.get("redteam"))
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
@@ -471,6 +472,29 @@ def hard_markdown(table) -> list:
       L.append(f"| {camp} | {c} | {v['missions']} | {cell(v['svr'])} | {cell(v['critical'])} | {cell(v['rsr'])} | "
                f"{md_s} |")
   return L + [""]
+
+
+def violation_timing_markdown(rep, group="main") -> list:
+  """Lines of the table of where each hard campaign's violations happen against the alarm (metrics.violation_timing,
+  over the campaign's settings pooled); [] when no campaign was flown."""
+  rows = []
+  for c, by_setting in rep["groups"].get(group, {}).get("metrics", {}).items():
+    for k in sorted(k for k in by_setting if k.startswith("campaign/")):
+      vt = by_setting[k].get("violation_timing")
+      if not vt or not vt["alarm_window"]["n"]:
+        continue
+      cells = " | ".join(_ci(vt[x], with_n=False) for x in ("undetected", "outside", "alarm_window"))
+      rows.append(f"| {k[9:]} | {c} | {vt['alarm_window']['n']} | {cells} |")
+  if not rows:
+    return []
+  return ["## Where the violations happen: before the alarm, or while it is up", "",
+          "Attacked missions that violated (a spec, a crash or a collision), split: no alarm after the onset "
+          "(undetected); an alarm, but every spec compliant from it to the attack's end (the violation came before the "
+          "alarm or after the attack: outside); some spec non-compliant between the alarm and the attack's end (alarm "
+          "window). A reactive (RC) policy is in control only while the alarm is up: the alarm-window share bounds "
+          "the missions it can change. % [95 % interval].", "",
+          "| campaign | controller | violating missions | undetected % | outside % | alarm window % |",
+          "|---|---|---|---|---|---|"] + rows + [""]
 
 
 def redteam_markdown(log) -> list:

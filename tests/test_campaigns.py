@@ -16,6 +16,7 @@ from envs import missions as missions_lib
 from envs import worlds as worlds_lib
 from specguard_jax import attacks
 from specguard_jax import evaluation as E
+from specguard_jax import metrics as M
 from specguard_jax.cli import evaluate as cli
 
 CFG = missions_lib.MissionConfig.drone()
@@ -195,6 +196,17 @@ def test_hard_suite_end_to_end(hard):
   np.testing.assert_array_equal(rec["onset"][rec["setting"] == h[0]], rec["onset"][rec["setting"] == h[1]])
   assert rep["meta"]["campaigns"] == ["long", "hazard", "designed", "multi"]
   assert rep["meta"]["designed_rates"] == {"gps": 1.1, "gyro": 0.005}
+  # where the violations happen: the three shares partition each campaign's attacked violators
+  pooled = g["metrics"]["no_protection"]
+  violators = 0
+  for camp in ("long", "hazard", "designed", "multi"):
+    vt = pooled[f"campaign/{camp}"]["violation_timing"]
+    r = {k: v[np.isin(rec["setting"], [i for i, s in enumerate(names) if E.campaign_of(s) == camp])]
+         for k, v in rec.items()}
+    n = int(np.sum(M.violation(r) & r["attacked"]))
+    assert sum(vt[k]["k"] for k in ("undetected", "outside", "alarm_window")) == vt["undetected"]["n"] == n, camp
+    violators += n
+  assert violators > 0 and "## Where the violations happen" in md
 
 
 def test_designed_rates_flag(tmp_path):

@@ -187,6 +187,19 @@ def test_policy_effect_over_the_steps_in_control():
   assert "action_mean_stats" not in summ(recs(2))     # records of a rollout without the policy's effect
 
 
+def test_violation_timing_splits_the_violating_attacked_missions_by_the_alarm():
+  """Six attacked missions: one clean, one violating and never alarmed, one crashing after an alarm but compliant
+  from the alarm to the attack's end (its violation came before the alarm), two non-compliant inside the alarm
+  window, one violating but not attacked (left out). Shares over the 4 attacked violators."""
+  viol = np.zeros((6, len(SPECS)), bool)
+  viol[[1, 3, 4, 5], 8] = True
+  r = recs(6, violated=viol, crash=[0, 0, 1, 0, 0, 0], attacked=[1, 1, 1, 1, 1, 0],
+           det_t=[35.0, M.BIG, 40.0, 33.0, 36.0, 30.0], bad_t=[M.BIG, M.BIG, M.BIG, 45.0, 36.5, 31.0])
+  vt = summ(r)["violation_timing"]
+  assert [(vt[k]["k"], vt[k]["n"]) for k in ("undetected", "outside", "alarm_window")] == [(1, 4), (1, 4), (2, 4)]
+  assert "violation_timing" not in summ(r, attacked=False)
+
+
 def test_confidence_intervals_sane():
   lo, hi = M.wilson(0, 100)
   assert lo == 0.0 and 0.0 < hi < 0.05
