@@ -190,6 +190,9 @@ class EnvConfig:
   override_phases: str = "cruise_loiter"
   proximity_sectors: int = 8
   proximity_range: float = 20.0
+  # Frames in the observation: the current one and the obs_history - 1 before it, newest first (envs.observation;
+  # 1 = the current frame only).
+  obs_history: int = 1
 
   def validate(self):
     check_env_values(self)
@@ -258,6 +261,7 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
     if not isinstance(getattr(cfg, name), str):
       raise ValueError(f"{prefix}{name} must be a file path (a string), got {getattr(cfg, name)!r}")
   checks.integer(f"{prefix}proximity_sectors", cfg.proximity_sectors, 1, 64)
+  checks.integer(f"{prefix}obs_history", cfg.obs_history, 1, 16)
   checks.number(f"{prefix}proximity_range", cfg.proximity_range, 0, 1e3, lo_open=True)
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
@@ -404,7 +408,7 @@ class RAVEnv(Env):
   # ---------------------------------------------------------------- Env API
   @property
   def observation_size(self) -> int:
-    return obs_lib.size(self.config.obs_layout, self.config.proximity_sectors)
+    return obs_lib.size(self.config.obs_layout, self.config.proximity_sectors, self.config.obs_history)
 
   @property
   def action_size(self) -> int:
@@ -496,7 +500,7 @@ class RAVEnv(Env):
     info["spec_robustness"] = spec_rob
     info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary",
                                          capped=self.config.reward == "capped")[1]
-    obs = self._observation(world, mission, sim, key=k_run)
+    obs = obs_lib.with_history(self._observation(world, mission, sim, key=k_run), None, self.config.obs_history)
     metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
     return State(pipeline_state=phys, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
                  info=info)
@@ -580,7 +584,7 @@ class RAVEnv(Env):
       phys = tree_where(finite, phys, state.pipeline_state)
       sim = tree_where(finite, sim, sim0)
     obs = self._observation(world, mission, sim, obstacle=(d_est, g_est), key=k_ticks)
-    obs = jnp.where(jnp.isfinite(obs), obs, 0.0)
+    obs = obs_lib.with_history(jnp.where(jnp.isfinite(obs), obs, 0.0), state.obs, self.config.obs_history)
     # Online STL monitor: robustness of each spec over the episode so far (its final value = offline robustness).
     with jax.named_scope("stl_reward"):
       monitor, spec_rob, _ = self.spec_eval.monitor_update(info["spec_monitor"], signals)
@@ -771,7 +775,8 @@ class RAVEnv(Env):
     return sim["x_rec"][0:3] if self.config.reconstruction else sim["ekf"].pos
 
   def _observation(self, world, mission, sim, obstacle=None, key=None) -> jax.Array:
-    """Policy input [observation_size] in the layout `config.obs_layout` (envs.observation). Its first 24 entries
+    """One frame of the policy input [obs_lib.frame_size] in the layout `config.obs_layout` (envs.observation; the
+    observation is this frame and, with config.obs_history > 1, the frames before it). Its first 24 entries
     from the ESTIMATED state (so attacks reach them): the paper's x'_t (position relative to the target waypoint,
     velocity, acceleration, Euler angles) + mission context: direction of the next leg [3], unit direction to the
     nearest obstacle [3], obstacle distance, fence margin, path deviation, altitude, horizontal speed, waypoint slack

@@ -21,6 +21,11 @@ obstacle, fence margin, path deviation, altitude, horizontal speed, waypoint sla
 only, S9's 0.5 m/s landing limit among them: without it the policy cannot tell a landing from a climb-out):
   phase [4]             one-hot of takeoff, cruise, loiter, descent (all 0 once the mission is done)
 The first 24 entries are the same in every layout (the attack agent reads x'_t and the obstacle distance there).
+
+History (`history` H > 1, EnvConfig.obs_history): the layout's frame is followed by the H - 1 frames before it,
+newest first ([frame_t, frame_t-1, ..., frame_t-H+1], one field `previous_frames` of (H - 1) x the frame's size;
+the first step of an episode repeats its frame). The current frame stays first, so everything that reads the
+first entries reads the present.
 """
 
 from __future__ import annotations
@@ -53,8 +58,8 @@ class RangeSensorConfig:
   sigma_frac: float = 0.015
 
 
-def fields(layout: str, sectors: int) -> tuple:
-  """((name, size), ...) of `layout` with a proximity ring of `sectors` beams."""
+def frame_fields(layout: str, sectors: int) -> tuple:
+  """((name, size), ...) of one frame of `layout` with a proximity ring of `sectors` beams."""
   if layout == "paper24":
     return PAPER24_FIELDS
   recovery = PAPER24_FIELDS + (("alarm", 1), ("diagnosed", len(SENSOR_NAMES)), ("time_since_alarm", 1),
@@ -66,19 +71,51 @@ def fields(layout: str, sectors: int) -> tuple:
   raise ValueError(f"unknown observation layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
 
 
-def size(layout: str, sectors: int) -> int:
-  """Number of observation entries of `layout`."""
-  return sum(n for _, n in fields(layout, sectors))
+def fields(layout: str, sectors: int, history: int = 1) -> tuple:
+  """((name, size), ...) of `layout` with a proximity ring of `sectors` beams and `history` frames (module
+  docstring: the frames before the current one are one field, previous_frames)."""
+  frame = frame_fields(layout, sectors)
+  if history > 1:
+    return frame + (("previous_frames", (int(history) - 1) * sum(n for _, n in frame)),)
+  return frame
 
 
-def describe(layout: str, sectors: int) -> dict:
+def size(layout: str, sectors: int, history: int = 1) -> int:
+  """Number of observation entries of `layout` (with `history` frames)."""
+  return sum(n for _, n in fields(layout, sectors, history))
+
+
+def frame_size(layout: str, sectors: int) -> int:
+  """Number of entries of one frame of `layout`."""
+  return sum(n for _, n in frame_fields(layout, sectors))
+
+
+def describe(layout: str, sectors: int, history: int = 1) -> dict:
   """The layout as policy_config.json records it: {'name', 'version', 'fields': [[name, size], ...]}."""
-  return {"name": layout, "version": LAYOUT_VERSION, "fields": [[f, n] for f, n in fields(layout, sectors)]}
+  return {"name": layout, "version": LAYOUT_VERSION, "fields": [[f, n] for f, n in fields(layout, sectors, history)]}
 
 
 def sectors_of(desc: dict) -> int:
   """The proximity ring's sector count of a `describe` dict (0 without a ring)."""
   return dict((f, n) for f, n in desc["fields"]).get("proximity", 0)
+
+
+def history_of(desc: dict) -> int:
+  """The number of frames of a `describe` dict (1 without previous_frames)."""
+  sizes = dict((f, n) for f, n in desc["fields"])
+  frame = sum(n for f, n in desc["fields"] if f != "previous_frames")
+  return 1 + sizes.get("previous_frames", 0) // max(frame, 1)
+
+
+def with_history(frame: jax.Array, previous_obs: jax.Array | None, history: int) -> jax.Array:
+  """The observation [history x F] of this step's frame [F]: the frame, then the newest history - 1 frames of the
+  previous observation (its first (history - 1) x F entries); previous_obs None (an episode's first step): the
+  frame repeated."""
+  if history <= 1:
+    return frame
+  if previous_obs is None:
+    return jnp.tile(frame, history)
+  return jnp.concatenate([frame, previous_obs[: (history - 1) * frame.shape[-1]]])
 
 
 def noisy_ranges(ranges: jax.Array, key: jax.Array, max_range: float, cfg: RangeSensorConfig) -> jax.Array:

@@ -206,12 +206,13 @@ def obs_overrides(run_dir: str) -> tuple:
     raise NotAvailable(str(e)) from None
   if desc is None:
     return (("obs_layout", "paper24"),)
-  name, sectors = desc["name"], obs_lib.sectors_of(desc)
-  if name not in obs_lib.LAYOUTS or obs_lib.describe(name, max(sectors, 1))["fields"] != desc["fields"]:
+  name, sectors, history = desc["name"], obs_lib.sectors_of(desc), obs_lib.history_of(desc)
+  if name not in obs_lib.LAYOUTS or obs_lib.describe(name, max(sectors, 1), history)["fields"] != desc["fields"]:
     raise NotAvailable(f"{run_dir}: the policy was trained on observation layout {name!r} version "
                        f"{desc['version']} ({sum(n for _, n in desc['fields'])} inputs), which this version does not "
                        f"build (layouts: {', '.join(obs_lib.LAYOUTS)}, version {obs_lib.LAYOUT_VERSION})")
-  return (("obs_layout", name),) + ((("proximity_sectors", sectors),) if sectors else ())
+  return ((("obs_layout", name),) + ((("proximity_sectors", sectors),) if sectors else ())
+          + ((("obs_history", history),) if history > 1 else ()))
 
 
 def specguard_from_run(name: str, run_dir: str, *, reconstruction: bool | None = None,

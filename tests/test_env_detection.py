@@ -29,9 +29,9 @@ def test_config_errors():
 
 def test_residual_detector_in_env_flags_and_names_gps_spoof():
   """The alarm and diagnosis in info, and the same in the policy's recovery context and mission phase (the `context`
-  layout = `recovery` + phase; envs.observation)."""
+  layout = `recovery` + phase; envs.observation), with two frames of history after the current one."""
   env = envs.make("drone", world="open_beach", mission=MISSION, detector="residual", domain_randomization=False,
-                  obs_layout="context")
+                  obs_layout="context", obs_history=3)
   sched = attacks.schedule_for("gps", [30.0, 0.0, 0.0], onset=15.0, duration=100.0)
   state, _, _ = rollout.fly_batch(env, jax.random.split(jax.random.PRNGKey(7), 2), 170, attacks=_pair(sched))
   # 17 s flown: the overt spoof started at 15 s; the alarm is up and names the GPS (index 0).
@@ -39,8 +39,10 @@ def test_residual_detector_in_env_flags_and_names_gps_spoof():
   assert np.all(np.asarray(state.info["alarm"]) == 1.0)
   assert np.all(np.asarray(state.info["diagnosis"]) == gps)
   assert np.all(np.asarray(state.info["episode"]["detected"]) == 1.0)
-  obs = np.asarray(state.obs)
-  assert obs.shape == (2, env.observation_size) and env.observation_size == 24 + 1 + 6 + 1 + 4 + 8 + 4
+  frames = np.asarray(state.obs)
+  F = 24 + 1 + 6 + 1 + 4 + 8 + 4
+  assert frames.shape == (2, env.observation_size) and env.observation_size == 3 * F
+  obs = frames[:, :F]   # the current frame first
   alarm, diagnosed, since, std, ranges = obs[:, 24], obs[:, 25:31], obs[:, 31], obs[:, 32:36], obs[:, 36:44]
   phase = np.asarray(state.info["sim"]["nav"].phase)
   assert np.all(phase == 1)   # cruising at 17 s
@@ -51,6 +53,11 @@ def test_residual_detector_in_env_flags_and_names_gps_spoof():
   assert np.all((since > 0.0) & (since <= 2.0)) and np.allclose(since * 10, np.round(since * 10), atol=1e-3)
   assert np.all(std > 0.0) and np.all(std[:, 0] < 50.0)
   assert np.all((ranges >= 0.0) & (ranges <= 20.0))
+  # the frames before, newest first: one and two env steps (0.1 s) earlier
+  for k in (1, 2):
+    np.testing.assert_allclose(frames[:, k * F + 31], np.maximum(since - 0.1 * k, 0.0), atol=1e-4)
+    assert np.all(frames[:, k * F + 44:(k + 1) * F] == obs[:, 44:])            # still cruising
+  assert not np.allclose(frames[:, F:F + 3], obs[:, :3])                       # it moved in 0.1 s
   # the first 24 entries are the paper layout's observation of the same state
   paper = copy.copy(env)
   paper.config = dataclasses.replace(env.config, obs_layout="paper24")

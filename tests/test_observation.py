@@ -113,6 +113,17 @@ def test_layout_sizes_and_description():
                                 np.vstack([np.eye(4), np.zeros(4)]))   # done (4): no phase
   with pytest.raises(ValueError, match="unknown observation layout 'radar'"):
     obs_lib.size("radar", 8)
+  # history: the frame, then the frames before it as one field; the first step repeats its frame
+  h = obs_lib.describe("context", 8, 3)
+  assert h["fields"][-1] == ["previous_frames", 96] and obs_lib.size("context", 8, 3) == 144
+  assert obs_lib.history_of(h) == 3 and obs_lib.history_of(obs_lib.describe("context", 8)) == 1
+  assert obs_lib.sectors_of(h) == 8 and obs_lib.frame_size("context", 8) == 48
+  f0, f1, f2 = (jnp.full(4, float(i)) for i in range(3))
+  o0 = obs_lib.with_history(f0, None, 3)
+  o2 = obs_lib.with_history(f2, obs_lib.with_history(f1, o0, 3), 3)
+  np.testing.assert_array_equal(o0, np.zeros(12))
+  np.testing.assert_array_equal(o2, [2.0] * 4 + [1.0] * 4 + [0.0] * 4)
+  assert obs_lib.with_history(f1, o0, 1) is f1
 
 
 def _save(run_dir, n_obs, layout):
@@ -126,6 +137,9 @@ def test_a_run_records_its_layout_and_evaluation_builds_it(tmp_path):
   _save(tmp_path / "new", 42, obs_lib.describe("recovery", 6))
   assert export.load_obs_layout(str(tmp_path / "new")) == obs_lib.describe("recovery", 6)
   assert controllers.obs_overrides(str(tmp_path / "new")) == (("obs_layout", "recovery"), ("proximity_sectors", 6))
+  _save(tmp_path / "hist", 3 * 48, obs_lib.describe("context", 8, 3))
+  assert controllers.obs_overrides(str(tmp_path / "hist")) == (("obs_layout", "context"), ("proximity_sectors", 8),
+                                                                ("obs_history", 3))
   # a policy saved before layouts were recorded: the paper's 24 inputs
   _save(tmp_path / "old", 24, None)
   assert "obs_layout" not in json.loads((tmp_path / "old" / export.CONFIG_FILE).read_text())

@@ -24,7 +24,7 @@ SENSORS = ("gps", "gyro")
 BASE = {"worlds": ("urban_park",), "max_episode_s": 60.0,
         "mission": MissionConfig.drone(min_duration_s=30.0, max_duration_s=40.0)}
 CFG = RT.RedteamConfig(num_envs=4, unroll_length=8, steps=64, sensors=SENSORS, max_duration_s=20.0,
-                       ppo=PPOConfig(ent_coef=0.01, num_minibatches=4, update_epochs=2))
+                       violation_penalty=1.0, ppo=PPOConfig(ent_coef=0.01, num_minibatches=4, update_epochs=2))
 # The settings evaluate.py builds for --sensors gps,gyro --profiles overt --campaigns redteam (the CLI test below
 # then reuses this module's compiled rollout).
 SETTINGS = (E.setting(None), E.setting("gps", "overt"), E.setting("gyro", "overt"), E.redteam_setting(SENSORS))
@@ -53,6 +53,7 @@ def test_trains_saves_and_reloads_with_the_same_actions(trained):
   obs = jax.random.normal(jax.random.PRNGKey(3), (16, attacker_lib.N_OBS)) * 3.0
   np.testing.assert_array_equal(np.asarray(agent.raw_action(params, obs)), np.asarray(agent2.raw_action(params2, obs)))
   assert meta["training"]["steps"] == CFG.steps and len(meta["history"]) == 2
+  assert meta["training"]["violation_penalty"] == 1.0
 
 
 def _always_gyro(params):

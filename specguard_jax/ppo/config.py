@@ -189,7 +189,7 @@ class TrainConfig:
   @property
   def n_obs(self) -> int:
     """SpecGuard's observation size: its env's layout (envs.observation)."""
-    return obs_lib.size(self.env.obs_layout, self.env.proximity_sectors)
+    return obs_lib.size(self.env.obs_layout, self.env.proximity_sectors, self.env.obs_history)
 
   def with_env(self, **kw) -> "TrainConfig":
     """This config with these fields of `env` replaced (e.g. cfg.with_env(worlds=("urban_park",)))."""

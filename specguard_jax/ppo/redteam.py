@@ -28,6 +28,7 @@ from specguard_jax import third_party  # noqa: F401 - before brax: mujoco.mjx wi
 from brax.envs.wrappers.training import VmapWrapper
 
 from envs.wrappers import AutoReset
+from specguard_jax import rewards as rewards_lib
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig
@@ -43,8 +44,9 @@ class RedteamConfig:
   """Training budget and game of one red-team agent. num_envs parallel missions, unroll_length steps each per PPO
   iteration, steps: total env steps (rounded up to whole iterations). sensors / max_duration_s / max_sensors /
   min_onset_s: what the agent may attack, for how long per mission (s), how many sensors at once, from when (s).
-  completion_bonus / speeds: as TrainConfig's (the zero-sum reward, the setpoint normalisation of the agent's
-  observation). seed: initial networks, missions and exploration."""
+  completion_bonus / violation_penalty / speeds: as TrainConfig's (the zero-sum reward, the setpoint normalisation of
+  the agent's observation; violation_penalty > 0 pays the agent on each spec violation's onset, the aim of a best
+  response). seed: initial networks, missions and exploration."""
   num_envs: int = 32
   unroll_length: int = 32
   steps: int = 65_536
@@ -53,6 +55,7 @@ class RedteamConfig:
   max_sensors: int = 2
   min_onset_s: float = 10.0
   completion_bonus: float = TrainConfig.completion_bonus
+  violation_penalty: float = TrainConfig.violation_penalty
   speeds: tuple = TrainConfig.speeds
   ppo: PPOConfig = PPOConfig(ent_coef=0.01, num_minibatches=4)
   seed: int = 0
@@ -138,6 +141,8 @@ def train(env, policy, policy_params, cfg: RedteamConfig, progress=None):
   aa = losses.make_agent(agent_def.policy, HIDDEN, "tanh", p, iters * p.update_epochs * p.num_minibatches)
   gamma = p.gamma
   bonus = (-cfg.completion_bonus / (1.0 - gamma)) if cfg.completion_bonus < 0 else cfg.completion_bonus
+  violation_cost = cfg.violation_penalty / (1.0 - gamma)
+  spec_weights = env.reward_fn.weights(env.config.critical_weight)   # [n_specs]
   B, T = cfg.num_envs, cfg.unroll_length
 
   @jax.jit
@@ -159,6 +164,9 @@ def train(env, policy, policy_params, cfg: RedteamConfig, progress=None):
     last, done = info["last_episode"], nxt.done
     complete = last["complete"] * done
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
+    if cfg.violation_penalty > 0:   # as the trainer's SpecGuard reward (ppo.iteration)
+      r_sg = r_sg - violation_cost * rewards_lib.violation_onset(
+          state.info["spec_robustness"], info["final_spec_robustness"], spec_weights)
     r = aenv.reward(r_sg, info["aa_extra"])
     o_next = obs_of(nxt.replace(obs=info["final_obs"]), setpoint)   # as the trainer: next obs from the final obs
     viol = jnp.any(info["final_spec_robustness"] < 0, axis=-1)

@@ -425,7 +425,7 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   policy = it.sg_policy(cfg)
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
-  layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors)
+  layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors, cfg.env.obs_history)
   export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip, obs_layout=layout)
   # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
   with jax.default_matmul_precision("float32"):
