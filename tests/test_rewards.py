@@ -164,16 +164,33 @@ def test_s12_pays_beside_a_keep_out_prism_taller_than_the_vehicle():
   assert r_far > 0.99 and r_near < r_far
 
 
-def test_violation_onset_counts_each_violated_spec_once_on_the_step_it_is_violated():
-  """TrainConfig.violation_penalty's count, fed by the env's online STL monitor over a 12-step trace: S1 (critical)
-  and S6 (obstacle within 5 m) from step 4 on, S9 (landing faster than 0.5 m/s) at step 7 only. Each counts once, weighted,
-  on its step; the per-episode sum equals the weighted count of specs violated at the end (the SVR verdict)."""
+def _onsets(trace, ev, w):
+  """violation_onset per transition of a trace flown through the online monitor (settled robustness), and the
+  final so-far robustness (= the whole-episode verdict)."""
+  monitor, rob, _ = ev.monitor_update(ev.monitor_init(), trace[0])
+  before = ev.settled(monitor, rob)
+  counts = []
+  for s in trace[1:]:
+    monitor, rob, _ = ev.monitor_update(monitor, s)
+    after = ev.settled(monitor, rob)
+    counts.append(float(rewards.violation_onset(before, after, w)))
+    before = after
+  return np.asarray(counts), np.asarray(rob)
+
+
+def test_violation_onset_counts_each_violated_spec_once_when_it_becomes_certain():
+  """TrainConfig.violation_penalty's count, fed by the env's online STL monitor: S1 (critical) and S6 (obstacle
+  within 5 m) from step 4 on, S9 (landing faster than 0.5 m/s) at step 7 only: each counts once, weighted, on its
+  step. S7 (cruise at >= 5 m/s or within 10 m of the waypoint, with a 3 s grace): a 2 s slow stretch is no
+  violation and counts nothing, though the so-far robustness dips below 0 during it; a 4 s one counts once, when the
+  grace has run out. Over each episode the counts add up to the weighted count of specs violated at its end."""
   d = specs.drone_specs()
   ev = specs.compile_specs(d, 0.1)
   w = np.asarray(rewards.RewardFn.create(d).weights(critical_weight=3.0))
-  n = 12
+  i1, i6, i7, i9 = (d.names.index(k) for k in ("S1", "S6", "S7", "S9"))
+  assert (w[i1], w[i6], w[i7], w[i9]) == (3.0, 1.0, 1.0, 1.0)
   trace = []
-  for t in range(n):
+  for t in range(12):
     s = _signals()
     if t >= 4:
       s["obstacle_distance"] = jnp.array(2.0)
@@ -182,19 +199,18 @@ def test_violation_onset_counts_each_violated_spec_once_on_the_step_it_is_violat
     if t == 7:
       s["descent_speed"] = jnp.array(1.5)
     trace.append(s)
-  monitor, before, _ = ev.monitor_update(ev.monitor_init(), trace[0])
-  counts = []
-  for s in trace[1:]:
-    monitor, after, _ = ev.monitor_update(monitor, s)
-    counts.append(float(rewards.violation_onset(before, after, w)))
-    before = after
-  i1, i6, i9 = (d.names.index(k) for k in ("S1", "S6", "S9"))
-  expect = np.zeros(n - 1)
-  expect[3] += w[i1] + w[i6]                 # trace step 4 is transition 3
-  expect[6] += w[i9]
-  assert (w[i1], w[i6], w[i9]) == (3.0, 1.0, 1.0)
+  counts, final = _onsets(trace, ev, w)
+  expect = np.zeros(11)
+  expect[3] = w[i1] + w[i6]                  # trace step 4 is transition 3
+  expect[6] = w[i9]
   np.testing.assert_allclose(counts, expect)
-  final_violated = np.asarray(before) < 0
-  assert np.isclose(sum(counts), np.sum(w * final_violated))
+  assert np.isclose(counts.sum(), np.sum(w * (final < 0)))
+  for slow_steps, violated in ((20, False), (40, True)):
+    trace = [{**_signals(), "dist_wp": jnp.array(50.0),
+              **({"speed_xy": jnp.array(1.0)} if 10 <= t < 10 + slow_steps else {})} for t in range(80)]
+    counts, final = _onsets(trace, ev, w)
+    assert (final[i7] < 0) == violated and counts.sum() == float(violated), slow_steps
+    if violated:   # certain once the 3 s (30 steps) after the first slow step have passed
+      assert int(np.flatnonzero(counts)[0]) + 1 == 10 + 30
   # NaN robustness (a failed physics step) counts as no onset
   assert float(rewards.violation_onset(jnp.zeros(12), jnp.full(12, jnp.nan), w)) == 0.0

@@ -134,3 +134,29 @@ def test_window_columns_equal_window_reduce(t):
         want = np.asarray(windows.window_reduce(x, a, b, op))
         got = np.stack([np.asarray(c) for c in columns.window_columns(columns.split_columns(x), a, b, op)], -1)
         np.testing.assert_array_equal(got, want, err_msg=f"[{a},{b}] {op.__name__}")
+
+
+@pytest.mark.parametrize("text,h", [("always((x > 0.5) -> eventually[0,4](y < 0))", 4), ("always(x > -2)", 0),
+                                    ("always(always[1,3](y > -2.5) or x > 1)", 3)])
+def test_settled_is_the_minimum_over_closed_positions(text, h):
+  """OnlineMonitor.settled after step t of always(psi) (psi of horizon h) = min over positions j <= t - h of psi's
+  robustness at j on the whole trace (+inf before any closes): it never rises, and ends >= the final verdict.
+  Other formulas: the so-far value."""
+  rng = np.random.default_rng(3)
+  t_len, n = 24, 4
+  sig = {k: np.round(rng.uniform(-3, 3, (n, t_len)), 3).astype(np.float32) for k in SIGS}
+  mon = stl.OnlineMonitor.create(text)
+  psi = np.asarray(stl.robustness(mon.formula.arg, sig))            # [B, T] psi at every position, whole trace
+  state = mon.init((n,))
+  settled = []
+  for t in range(t_len):
+    state, so_far = mon.update(state, {k: jnp.asarray(v[:, t]) for k, v in sig.items()})
+    settled.append(np.asarray(mon.settled(state, so_far)))
+    closed = psi[:, : max(t - h + 1, 0)]
+    expect = closed.min(axis=1) if closed.shape[1] else np.full(n, np.inf)
+    np.testing.assert_allclose(settled[-1], expect, rtol=0, atol=1e-5)
+  settled = np.stack(settled)
+  assert np.all(settled[1:] <= settled[:-1]) and np.all(settled[-1] >= np.asarray(so_far) - 1e-6)
+  other = stl.OnlineMonitor.create("eventually(x > 2.9)")
+  s, v = other.update(other.init((n,)), {"x": jnp.zeros(n)})
+  assert np.array_equal(np.asarray(other.settled(s, v)), np.asarray(v))

@@ -130,9 +130,9 @@ class TrainConfig:
   reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
   spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").  violation_penalty: the SpecGuard
   agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight (critical_weight for critical specs,
-  1 otherwise, 0 for monitored-only ones) on the step a spec's episode robustness first turns negative (the online
-  STL monitor: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a violation costs what a
-  compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md "Reward incentives").
+  1 otherwise, 0 for monitored-only ones) on the step a spec's violation becomes certain (the online STL monitor's
+  settled robustness turns negative: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a
+  violation costs what a compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md "Reward incentives").
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).

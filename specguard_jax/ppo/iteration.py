@@ -287,9 +287,9 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     complete = last["complete"] * done
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
-    if cfg.violation_penalty > 0:   # a spec violated in this step (its episode robustness turned negative)
-      r_sg = r_sg - violation_cost * rewards_lib.violation_onset(
-          state.info["spec_robustness"], info["final_spec_robustness"], spec_weights)
+    if cfg.violation_penalty > 0:   # a spec whose violation became certain in this step
+      r_sg = r_sg - violation_cost * rewards_lib.step_violation_onsets(base.spec_eval, state.info, info, done,
+                                                                       spec_weights)
     final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg

@@ -165,8 +165,8 @@ def train(env, policy, policy_params, cfg: RedteamConfig, progress=None):
     complete = last["complete"] * done
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
     if cfg.violation_penalty > 0:   # as the trainer's SpecGuard reward (ppo.iteration)
-      r_sg = r_sg - violation_cost * rewards_lib.violation_onset(
-          state.info["spec_robustness"], info["final_spec_robustness"], spec_weights)
+      r_sg = r_sg - violation_cost * rewards_lib.step_violation_onsets(env.spec_eval, state.info, info, done,
+                                                                       spec_weights)
     r = aenv.reward(r_sg, info["aa_extra"])
     o_next = obs_of(nxt.replace(obs=info["final_obs"]), setpoint)   # as the trainer: next obs from the final obs
     viol = jnp.any(info["final_spec_robustness"] < 0, axis=-1)

@@ -67,3 +67,11 @@ class SpecEvaluator:
       vals.append(v)
     rob = jnp.stack(vals, axis=-1)
     return tuple(new), rob, rob < 0
+
+  def settled(self, state, robustness) -> jnp.ndarray:
+    """Per-spec robustness [..., n_specs] over the positions whose windows have closed (stl.OnlineMonitor.settled:
+    never rises within an episode, < 0 once a violation is certain), from the monitor state and the so-far
+    robustness [..., n_specs] that monitor_update returned with it."""
+    vals = [m.settled(s, robustness[..., i]) for i, (m, s) in enumerate(zip(self.monitors(), state))]
+    shape = robustness.shape[:-1]
+    return jnp.stack([jnp.broadcast_to(v, shape) for v in vals], axis=-1)

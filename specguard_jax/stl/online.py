@@ -147,6 +147,18 @@ class OnlineMonitor:
     out = _combine(skel, vals)
     return MonitorState(t + 1, window, prefix, tuple(new_acc)), out
 
+  def settled(self, state: MonitorState, so_far: jnp.ndarray) -> jnp.ndarray:
+    """Robustness [...] over the positions of the trace whose windows have closed, for `always(psi)` with psi
+    bounded: the running minimum of psi's finalised values (state: after `update`), which no later sample can raise
+    (+inf before the first position closes). The trace-so-far value (`so_far`, what `update` returned) can dip below
+    0 while a window of psi is still open and rise again once it closes (always(eventually[0, 3 s] ...) during a slow
+    stretch shorter than 3 s), so it cannot say when a violation has become certain; this can. Any other formula:
+    `so_far`."""
+    skel, anchors, _, _ = self._plan()
+    if skel == 0 and anchors[0][0] == "G":
+      return state.acc[0][0]
+    return so_far
+
 
 def _ring_write(b, slot, x):
   """b [..., W] with b[..., slot] = x (slot, x [...]): an indexed write XLA does in place."""
