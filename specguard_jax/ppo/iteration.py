@@ -9,7 +9,8 @@ the loop unless disabled. Iterations alternate: `alternate_iters` iterations upd
 reverse; the turn is data in the carry, so both branches are one compiled program (lax.cond).
 
 Reward seen by SG: the env's per-step compliance reward (in [0, 1] normalised) + the completion bonus on mission
-completion - the violation penalty on the step a spec becomes violated (TrainConfig.violation_penalty); AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
+completion - the violation penalty on the step a spec's violation becomes certain (TrainConfig.violation_penalty);
+AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
 reached the vehicle (override active: a phase of override_phases, and the alarm up for RC); its value function
 learns from all.
 """
