@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from brax.envs.base import State, Wrapper
 
 from envs.base import tree_where
+from specguard_jax import rewards as rewards_lib
 
 _POOL_KEYS = ("reset_pool", "pool_cursor", "pool_refresh", "reset_key", "last_episode", "final_obs",
               "final_spec_robustness")
@@ -142,3 +143,16 @@ class AutoReset(Wrapper):
       pool = jax.tree.map(lambda p, x: p.at[slots].set(x), pool, new)
     return state.replace(info=dict(info, reset_pool=pool, reset_key=key,
                                    pool_refresh=((ref_ptr + n) % pool_n).astype(jnp.int32)))
+
+
+def violation_onsets(spec_eval, weights, info_before: dict, info_after: dict, done) -> jax.Array:
+  """Weighted count [...] of the specs whose violation became certain in one AutoReset step (rewards.violation_onset
+  on specs.SpecEvaluator.settled): info_before / info_after the batch's infos before and after the step ('spec_monitor',
+  'spec_robustness'), done [...], weights [n_specs]. An episode that ended in the step is judged on its whole-episode
+  robustness ('final_spec_robustness': its monitor has been replaced by the next episode's), which also settles what
+  was still open at its end. A violation already in an episode's first sample (the reset's) is not counted: no
+  action caused it."""
+  before = spec_eval.settled(info_before["spec_monitor"], info_before["spec_robustness"])
+  after = spec_eval.settled(info_after["spec_monitor"], info_after["spec_robustness"])
+  after = jnp.where(jnp.asarray(done)[..., None] > 0, info_after["final_spec_robustness"], after)
+  return rewards_lib.violation_onset(before, after, weights)

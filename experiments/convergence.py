@@ -8,10 +8,11 @@ Algorithm 2 stop rule holds (ppo.runner.converged: both agents' mean returns cha
 between the last two windows of W iterations), with the run's converge_window / converge_eps unless --window / --eps
 are given, checked where the trainer checks it (after each call of the run's iters_per_call iterations; the rule
 can hold at one iteration and not at the next); the env steps and training seconds to that iteration (the sum of
-the iterations' steps / their calls' steps per second: compiles excluded); and the run's phase-2 return and SVR averaged over its last window. A run that
-never meets the rule says so ("not within its budget"): a run trained with the stop rule on ends where it converged,
-one trained without it (converge_eps=0 or a sweep) is judged here on the rule it would have stopped by. Compare runs
-trained on the same budget and env count, on the same device.
+the iterations' steps / their calls' steps per second, a phase's first call at the next call's rate: compiles
+excluded); and the run's phase-2 return and SVR averaged over its last window. A run that never meets the rule says
+so ("not within its budget"): a run trained with the stop rule on ends where it converged, one trained without it
+(converge_eps=0 or a sweep) is judged here on the rule it would have stopped by. Compare runs trained on the same
+budget and env count, on the same device.
 """
 
 from __future__ import annotations
@@ -60,8 +61,13 @@ def time_to_convergence(rows: list, window: int, eps: float, every: int = 1) -> 
   p2 = [r for r in rows if r.get("phase") == 2]
   start = max([r["env_steps"] for r in rows if r.get("phase") == 1], default=0)
   history, at, train_s, prev = [], None, 0.0, start
+  # a call's first iterations (first_call) log steps / (compile + run): their rate is the next call's
+  steady = [_finite(r.get("sps")) for r in p2]
+  for i in range(len(p2) - 2, -1, -1):
+    if p2[i].get("first_call"):
+      steady[i] = steady[i + 1]
   for i, r in enumerate(p2):
-    sps = _finite(r.get("sps"))
+    sps = steady[i]
     train_s += (r["env_steps"] - prev) / sps if sps > 0 else 0.0
     prev = r["env_steps"]
     history.append([_finite(r.get("return")), _finite(r.get("return_aa"))])

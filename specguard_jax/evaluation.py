@@ -440,8 +440,7 @@ def evaluate(env, policy, policy_params, *, missions: int = 1000, settings=None,
   waypoint, no crash/collision/stall), complete, collision, crash, stall, fence_breach, attacked, unfinished,
   detected, violations_per_spec; plus '_steps'."""
   settings = _as_settings(settings or default_settings())
-  # cached: the trainer's held-out evaluations (a sweep's members, tuning trials, a resumed run) share one program
-  rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s)
+  rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s, cache=False)
   crit = np.asarray(env.spec_table.critical, bool)
   res = {}
   for i, s in enumerate(settings):

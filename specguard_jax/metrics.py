@@ -175,8 +175,9 @@ def violation_timing(r) -> dict:
     undetected    no alarm at or after the attack's onset;
     outside       an alarm, but every spec was compliant from it to the attack's end (or the episode's): the
                   violation happened before the alarm or after the attack;
-    alarm_window  some spec non-compliant between the alarm and the attack's end (record bad_t): the only missions
-                  a reactive (RC) policy, in control while the alarm is up, can change."""
+    alarm_window  some spec non-compliant between the alarm and the attack's end (record bad_t, over the specs that
+                  carry a reward): where a reactive (RC) policy, in control while the alarm is up, meets the
+                  failure; outside this window it can act only on what follows the attack's end."""
   viol = violation(r) & _b(r, "attacked")
   detected = np.asarray(r["det_t"], float) < BIG / 2
   window = detected & (np.asarray(r["bad_t"], float) < BIG / 2)

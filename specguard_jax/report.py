@@ -491,8 +491,9 @@ def violation_timing_markdown(rep, group="main") -> list:
           "Attacked missions that violated (a spec, a crash or a collision), split: no alarm after the onset "
           "(undetected); an alarm, but every spec compliant from it to the attack's end (the violation came before the "
           "alarm or after the attack: outside); some spec non-compliant between the alarm and the attack's end (alarm "
-          "window). A reactive (RC) policy is in control only while the alarm is up: the alarm-window share bounds "
-          "the missions it can change. % [95 % interval].", "",
+          "window, up to the attack's end). A reactive (RC) policy is in control only while the alarm is up: it meets "
+          "the failures of the alarm-window share; the others it can change only after the attack's end, if at all. "
+          "% [95 % interval].", "",
           "| campaign | controller | violating missions | undetected % | outside % | alarm window % |",
           "|---|---|---|---|---|---|"] + rows + [""]
 

@@ -15,8 +15,9 @@ def _run(tmp_path, name, returns, window=2, eps=1e-3, every=1):
   d = tmp_path / name
   d.mkdir()
   rows = [{"phase": 1, "iteration": i + 1, "env_steps": 100 * (i + 1), "sps": 50.0, "return": 0.0} for i in range(3)]
-  rows += [{"phase": 2, "iteration": i + 1, "env_steps": 300 + 100 * (i + 1), "sps": 100.0, "return": r,
-            "return_aa": -r, "svr": 0.1 * (i + 1)} for i, r in enumerate(returns)]
+  # phase 2's first call (its first iteration here) logs its steps over compile + run: 1 step/s
+  rows += [{"phase": 2, "iteration": i + 1, "env_steps": 300 + 100 * (i + 1), "sps": 1.0 if i == 0 else 100.0,
+            "first_call": i == 0, "return": r, "return_aa": -r, "svr": 0.1 * (i + 1)} for i, r in enumerate(returns)]
   (d / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
   (d / "config.json").write_text(json.dumps({"converge_window": window, "converge_eps": eps, "iters_per_call": every}))
   return str(d)

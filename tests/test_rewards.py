@@ -214,3 +214,28 @@ def test_violation_onset_counts_each_violated_spec_once_when_it_becomes_certain(
       assert int(np.flatnonzero(counts)[0]) + 1 == 10 + 30
   # NaN robustness (a failed physics step) counts as no onset
   assert float(rewards.violation_onset(jnp.zeros(12), jnp.full(12, jnp.nan), w)) == 0.0
+
+
+def test_violation_onsets_of_an_auto_reset_step_judge_ended_episodes_on_their_final_verdict():
+  """envs.wrappers.violation_onsets over a batch of 3 envs in one step: env 0 flies on into an obstacle (S1 and S6
+  become certain), env 1 ended in the step and its final verdict violates S9 while the next episode's monitor (in
+  the after-info) is clean, env 2 ended with S1 already charged before (nothing new)."""
+  from envs.wrappers import violation_onsets
+  d = specs.drone_specs()
+  ev = specs.compile_specs(d, 0.1)
+  w = np.asarray(rewards.RewardFn.create(d).weights(critical_weight=3.0))
+  i1, i6, i9 = (d.names.index(k) for k in ("S1", "S6", "S9"))
+  clean = _signals((3,))
+  hit = {**clean, "obstacle_distance": jnp.array([20.0, 20.0, 2.0])}   # env 2 already violated S1 / S6
+  m0, r0, _ = ev.monitor_update(ev.monitor_init((3,)), clean)
+  m1, r1, _ = ev.monitor_update(m0, hit)
+  before = {"spec_monitor": m1, "spec_robustness": r1}
+  m2, r2, _ = ev.monitor_update(m1, {**hit, "obstacle_distance": jnp.array([2.0, 20.0, 2.0])})
+  reset_m, reset_r, _ = ev.monitor_update(ev.monitor_init((3,)), clean)   # envs 1 and 2: the next episode's start
+  pick = lambda a, b: jnp.where(jnp.array([True, False, False])[(...,) + (None,) * (a.ndim - 1)], a, b)  # noqa: E731
+  final = np.asarray(r2).copy()
+  final[1, i9] = -0.4                          # env 1's last window settled as a landing too fast
+  after = {"spec_monitor": jax.tree.map(pick, m2, reset_m), "spec_robustness": pick(r2, reset_r),
+           "final_spec_robustness": jnp.asarray(final)}
+  got = np.asarray(violation_onsets(ev, w, before, after, jnp.array([0.0, 1.0, 1.0])))
+  np.testing.assert_allclose(got, [w[i1] + w[i6], w[i9], 0.0])

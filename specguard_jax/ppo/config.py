@@ -132,7 +132,9 @@ class TrainConfig:
   agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight (critical_weight for critical specs,
   1 otherwise, 0 for monitored-only ones) on the step a spec's violation becomes certain (the online STL monitor's
   settled robustness turns negative: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a
-  violation costs what a compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md "Reward incentives").
+  violation costs what a compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md
+  "Reward incentives"). Unlike action_cost it is part of the game: the attack agent's zero-sum reward gains it and
+  the logged returns (and so the convergence rule) include it.
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).

@@ -31,13 +31,12 @@ from flax import struct
 
 import envs as envs_lib
 from envs.base import override_in_phase
-from envs.wrappers import AutoReset
+from envs.wrappers import AutoReset, violation_onsets
 from specguard_jax import evaluation
 from specguard_jax.ekf_lanes import resolve_ekf_kernel
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import campaign_mix
 from specguard_jax.ppo import distributed, losses, networks
-from specguard_jax import rewards as rewards_lib
 from specguard_jax.ppo.config import PPOConfig, TrainConfig, env_config, network_precision
 from specguard_jax.types import RESIDUAL_DETECTORS, SENSOR_NAMES
 
@@ -289,8 +288,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     term = done * (1.0 - trunc)
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
     if cfg.violation_penalty > 0:   # a spec whose violation became certain in this step
-      r_sg = r_sg - violation_cost * rewards_lib.step_violation_onsets(base.spec_eval, state.info, info, done,
-                                                                       spec_weights)
+      r_sg = r_sg - violation_cost * violation_onsets(base.spec_eval, spec_weights, state.info, info, done)
     final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg

@@ -27,8 +27,7 @@ import numpy as np
 from specguard_jax import third_party  # noqa: F401 - before brax: mujoco.mjx without its Warp notices
 from brax.envs.wrappers.training import VmapWrapper
 
-from envs.wrappers import AutoReset
-from specguard_jax import rewards as rewards_lib
+from envs.wrappers import AutoReset, violation_onsets
 from specguard_jax.ppo import attacker as attacker_lib
 from specguard_jax.ppo import losses, networks
 from specguard_jax.ppo.config import PPOConfig, TrainConfig
@@ -63,6 +62,8 @@ class RedteamConfig:
   def __post_init__(self):
     if self.num_envs < 1 or self.unroll_length < 1 or self.steps < 1:
       raise ValueError("red-team num_envs, unroll_length and steps must be >= 1")
+    if not self.violation_penalty >= 0:
+      raise ValueError(f"red-team violation_penalty must be >= 0, got {self.violation_penalty}")
     if (self.num_envs * self.unroll_length) % self.ppo.num_minibatches:
       raise ValueError(f"red-team num_envs * unroll_length ({self.num_envs * self.unroll_length}) must be divisible "
                        f"by num_minibatches ({self.ppo.num_minibatches})")
@@ -164,9 +165,8 @@ def train(env, policy, policy_params, cfg: RedteamConfig, progress=None):
     last, done = info["last_episode"], nxt.done
     complete = last["complete"] * done
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
-    if cfg.violation_penalty > 0:   # as the trainer's SpecGuard reward (ppo.iteration)
-      r_sg = r_sg - violation_cost * rewards_lib.step_violation_onsets(env.spec_eval, state.info, info, done,
-                                                                       spec_weights)
+    if cfg.violation_penalty > 0:   # as the trainer's SpecGuard reward (ppo.iteration), in this agent's gamma
+      r_sg = r_sg - violation_cost * violation_onsets(env.spec_eval, spec_weights, state.info, info, done)
     r = aenv.reward(r_sg, info["aa_extra"])
     o_next = obs_of(nxt.replace(obs=info["final_obs"]), setpoint)   # as the trainer: next obs from the final obs
     viol = jnp.any(info["final_spec_robustness"] < 0, axis=-1)

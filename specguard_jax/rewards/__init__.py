@@ -7,5 +7,4 @@
 
 from specguard_jax.rewards.families import (fence, fence_hv, keep_above, keep_below, paper_equation, s6, shaped,
                                             two_sided)
-from specguard_jax.rewards.reward import (RewardFn, binary_reward, reward, step_violation_onsets, survival_reward,
-                                         violation_onset)
+from specguard_jax.rewards.reward import RewardFn, binary_reward, reward, survival_reward, violation_onset

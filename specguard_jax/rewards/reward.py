@@ -122,24 +122,14 @@ def binary_reward(signals_t: Mapping[str, jnp.ndarray], table: SpecTable, normal
 
 def violation_onset(settled_before, settled_after, weights) -> jnp.ndarray:
   """Weighted count [...] of the specs whose violation became certain in one step, sum_i w_i [after_i < 0 <=
-  before_i] (settled robustness [..., n] before and after the step: specs.SpecEvaluator.settled, which never rises
-  within an episode, so each spec counts at most once per episode, on the step the mission became a violation of it
-  in the SVR sense; weights [n], RewardFn.weights). A NaN counts as no onset (the step that produced it ends the
-  episode as a failure anyway)."""
+  before_i] (settled robustness [..., n] before and after the step: specs.SpecEvaluator.settled; weights [n],
+  RewardFn.weights). For a spec `always(psi)` with psi bounded (every spec of the built-in tables) the settled value
+  never rises within an episode, so it counts at most once, on the step the mission became a violation of it in
+  the SVR sense; another formula's settled value is its so-far robustness, which can rise again, so it may count
+  more than once. A NaN counts as no onset (the step that produced it ends the episode as a failure anyway)."""
   before, after = jnp.asarray(settled_before), jnp.asarray(settled_after)
   onset = (after < 0) & (before >= 0)
   return jnp.sum(jnp.where(onset, jnp.asarray(weights, jnp.float32), 0.0), axis=-1)
-
-
-def step_violation_onsets(spec_eval, info_before, info_after, done, weights) -> jnp.ndarray:
-  """violation_onset [...] of one auto-reset env step: info_before / info_after the env infos before and after it
-  (their 'spec_monitor' and 'spec_robustness'), done [...]; an episode that ended in the step is judged on its
-  whole-episode robustness (info_after['final_spec_robustness'], envs.wrappers.AutoReset: its monitor has been
-  replaced by the next episode's), which also settles what was still open at its end."""
-  before = spec_eval.settled(info_before["spec_monitor"], info_before["spec_robustness"])
-  after = spec_eval.settled(info_after["spec_monitor"], info_after["spec_robustness"])
-  after = jnp.where(jnp.asarray(done)[..., None] > 0, info_after["final_spec_robustness"], after)
-  return violation_onset(before, after, weights)
 
 
 def survival_reward(failed) -> jnp.ndarray:
