@@ -167,12 +167,11 @@ def test_s12_pays_beside_a_keep_out_prism_taller_than_the_vehicle():
 def _onsets(trace, ev, w):
   """violation_onset per transition of a trace flown through the online monitor (settled robustness), and the
   final so-far robustness (= the whole-episode verdict)."""
-  monitor, rob, _ = ev.monitor_update(ev.monitor_init(), trace[0])
-  before = ev.settled(monitor, rob)
+  update = jax.jit(lambda m, s: (lambda m2, r: (m2, r, ev.settled(m2, r)))(*ev.monitor_update(m, s)[:2]))
+  monitor, rob, before = update(ev.monitor_init(), trace[0])
   counts = []
   for s in trace[1:]:
-    monitor, rob, _ = ev.monitor_update(monitor, s)
-    after = ev.settled(monitor, rob)
+    monitor, rob, after = update(monitor, s)
     counts.append(float(rewards.violation_onset(before, after, w)))
     before = after
   return np.asarray(counts), np.asarray(rob)
