@@ -134,7 +134,11 @@ class TrainConfig:
   settled robustness turns negative: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a
   violation costs what a compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md
   "Reward incentives"). Unlike action_cost it is part of the game: the attack agent's zero-sum reward gains it and
-  the logged returns (and so the convergence rule) include it.
+  the logged returns (and so the convergence rule) include it.  stall_penalty: the SpecGuard agent's reward drops by
+  stall_penalty / (1 - gamma) on the step an episode ends in a stall (no progress for env.stall_s: a failed mission in
+  the RSR sense, which no spec charges; 0 = off; 1 = a stall costs what one violation costs at violation_penalty=1),
+  so that hovering until the episode ends is no escape from the violation penalty; in the game like
+  violation_penalty.
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
@@ -171,6 +175,7 @@ class TrainConfig:
   completion_bonus: float = -1.0
   action_cost: float = 0.0
   violation_penalty: float = 0.0
+  stall_penalty: float = 0.0
   obs_clip: float = 10.0
   sg: PPOConfig = PPOConfig()
   aa: PPOConfig = PPOConfig(ent_coef=0.01)
@@ -264,6 +269,7 @@ class TrainConfig:
       checks.number(name, getattr(self, name))
     checks.number("action_cost", self.action_cost, 0)
     checks.number("violation_penalty", self.violation_penalty, 0)
+    checks.number("stall_penalty", self.stall_penalty, 0)
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
     checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
     checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)

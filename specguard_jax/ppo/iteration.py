@@ -9,7 +9,8 @@ the loop unless disabled. Iterations alternate: `alternate_iters` iterations upd
 reverse; the turn is data in the carry, so both branches are one compiled program (lax.cond).
 
 Reward seen by SG: the env's per-step compliance reward (in [0, 1] normalised) + the completion bonus on mission
-completion - the violation penalty on the step a spec's violation becomes certain (TrainConfig.violation_penalty);
+completion - the violation penalty on the step a spec's violation becomes certain (TrainConfig.violation_penalty)
+- the stall penalty on the step an episode ends in a stall (TrainConfig.stall_penalty);
 AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
 reached the vehicle (override active: a phase of override_phases, and the alarm up for RC); its value function
 learns from all.
@@ -233,6 +234,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
   gamma = cfg.sg.gamma
   bonus = (-cfg.completion_bonus / (1.0 - gamma)) if cfg.completion_bonus < 0 else cfg.completion_bonus
   violation_cost = cfg.violation_penalty / (1.0 - gamma)
+  stall_cost = cfg.stall_penalty / (1.0 - gamma)
   spec_weights = base.reward_fn.weights(base.config.critical_weight)   # [n_specs]
   rc = adversarial and cfg.variant == "rc"
   B = cfg.num_envs
@@ -289,6 +291,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     r_sg = jnp.where(jnp.isfinite(nxt.reward), nxt.reward, 0.0) + bonus * complete
     if cfg.violation_penalty > 0:   # a spec whose violation became certain in this step
       r_sg = r_sg - violation_cost * violation_onsets(base.spec_eval, spec_weights, state.info, info, done)
+    if cfg.stall_penalty > 0:   # the episode ended in this step in a stall (a failed mission no spec charges)
+      r_sg = r_sg - stall_cost * last["stall"] * done
     final_obs = info["final_obs"]   # the observation the step produced, before any auto-reset
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg
