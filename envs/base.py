@@ -484,6 +484,7 @@ class RAVEnv(Env):
         "collision": jnp.zeros(()), "crash": jnp.zeros(()), "fence_breach": jnp.zeros(()),
         "stall": jnp.zeros(()), "complete": jnp.zeros(()), "nan": jnp.zeros(()),
         "best_dist": self._goal_distance(mission, truth, nav), "last_progress": jnp.zeros(()), "progress_key": jnp.zeros((), jnp.int32),
+        "closest": self._goal_distance(mission, truth, nav),
         "min_obstacle_distance": signals["obstacle_distance"], "min_fence_margin": signals["fence_margin"],
         "attacked": jnp.zeros(()),
     }
@@ -501,7 +502,7 @@ class RAVEnv(Env):
     info["spec_reward"] = self.reward_fn(signals, binary=self.config.reward == "binary",
                                          capped=self.config.reward == "capped")[1]
     obs = obs_lib.with_history(self._observation(world, mission, sim, key=k_run), None, self.config.obs_history)
-    metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan")}
+    metrics = {k: jnp.zeros(()) for k in ("collision", "crash", "fence_breach", "stall", "complete", "nan", "progress")}
     return State(pipeline_state=phys, obs=obs, reward=jnp.zeros(()), done=jnp.zeros(()), metrics=metrics,
                  info=info)
 
@@ -563,6 +564,14 @@ class RAVEnv(Env):
     best = jnp.where(new_key | improved, goal_dist, ep["best_dist"])
     last_prog = jnp.where(new_key | improved, t, ep["last_progress"])
     moving_phase = (nav.phase != nav_lib.LOITER) & (nav.phase != nav_lib.DONE)
+    # Progress (m): how much closer to the current goal than ever before in this leg the true vehicle came in this
+    # step (0 on the step the goal changes, and while it is no closer than its closest yet). Summed over a leg it is
+    # the leg's start distance minus its closest approach however the leg is flown: pay for it
+    # (TrainConfig.progress_reward) cannot be farmed by moving away and back, and earlier progress is worth more only
+    # through the discount.
+    closest = jnp.where(finite, jnp.minimum(ep["closest"], goal_dist), ep["closest"])
+    progress = jnp.where(new_key, 0.0, ep["closest"] - closest)
+    closest = jnp.where(new_key & finite, goal_dist, closest)
     stall = moving_phase & (t - last_prog > self.config.stall_s) & finite
     fence_breach = (signals["fence_margin"] < 0.0) & finite
     terminated = nan | collision | crash | complete | stall
@@ -573,7 +582,7 @@ class RAVEnv(Env):
         collision=jnp.maximum(ep["collision"], collision), crash=jnp.maximum(ep["crash"], crash),
         fence_breach=jnp.maximum(ep["fence_breach"], fence_breach), stall=jnp.maximum(ep["stall"], stall),
         complete=jnp.maximum(ep["complete"], complete), nan=jnp.maximum(ep["nan"], nan),
-        best_dist=best, last_progress=last_prog, progress_key=key.astype(jnp.int32),
+        best_dist=best, last_progress=last_prog, progress_key=key.astype(jnp.int32), closest=closest,
         min_obstacle_distance=jnp.minimum(ep["min_obstacle_distance"], min_obs),
         min_fence_margin=jnp.minimum(ep["min_fence_margin"], signals["fence_margin"]))
     ep = {k: v.astype(info["episode"][k].dtype) for k, v in ep.items()}
@@ -598,7 +607,8 @@ class RAVEnv(Env):
     done = (terminated | truncated).astype(jnp.float32)
     metrics = {"collision": collision.astype(jnp.float32), "crash": crash.astype(jnp.float32),
                "fence_breach": fence_breach.astype(jnp.float32), "stall": stall.astype(jnp.float32),
-               "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32)}
+               "complete": complete.astype(jnp.float32), "nan": nan.astype(jnp.float32),
+               "progress": progress.astype(jnp.float32)}
     ep["attacked"] = jnp.maximum(ep["attacked"], attacks_lib.attack_active(attack, t).astype(jnp.float32))
     if self.config.detector != "none":
       ep["detected"] = jnp.maximum(ep["detected"], sim["det"].alarm.astype(jnp.float32))

@@ -190,6 +190,26 @@ def test_collision_terminates(drone_reset, drone_step):
   assert float(s2.info["signals"]["obstacle_distance"]) < 0
 
 
+def test_progress_pays_each_metre_of_a_leg_once(drone_reset, drone_step):
+  """The 'progress' metric (TrainConfig.progress_reward's pay): >= 0, the drop of the leg's closest approach to its
+  goal, so over the take-off climb it telescopes to the distance closed; and nothing is paid for coming back to
+  where the vehicle has already been (closest approach set to 0 m: no progress left on the leg)."""
+  s = drone_reset(jax.random.PRNGKey(4))
+  start = float(s.info["episode"]["closest"])
+  paid = []
+  for _ in range(30):   # 3 s of the take-off climb
+    s = drone_step(s, jnp.zeros(3))
+    paid.append(float(s.metrics["progress"]))
+  ep = s.info["episode"]
+  assert int(s.info["sim"]["nav"].phase) == 0 and float(s.done) == 0.0   # still the take-off leg
+  assert min(paid) >= 0.0
+  assert sum(paid) > 1.0, paid   # the climb closes metres on the take-off altitude
+  np.testing.assert_allclose(sum(paid), start - float(ep["closest"]), rtol=1e-4, atol=1e-4)
+  done_leg = s.replace(info=dict(s.info, episode=dict(ep, closest=jnp.zeros_like(ep["closest"]))))
+  s2 = drone_step(done_leg, jnp.zeros(3))
+  assert float(s2.metrics["progress"]) == 0.0 and float(s2.info["episode"]["closest"]) == 0.0
+
+
 def test_step_obstacle_queries_land_where_the_separate_queries_would(drone_reset, drone_step):
   """The step's one-pass obstacle queries (worlds.obstacle_queries) feed each consumer its own point: the signals'
   obstacle distance is the SDF at the final true position, the observation's distance and direction are those at the

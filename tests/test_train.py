@@ -238,9 +238,10 @@ def test_ppo_loss_equals_the_one_sum_per_statistic_form(normalize, value_clip):
 @pytest.mark.parametrize("phase", [1, 2])
 def test_carry_types_are_stable_so_calls_never_recompile(phase):
   """The carry a call returns has exactly the input's shapes/dtypes/weak types (else each call would recompile).
-  Phase 2 traces with the reward's optional terms on (TrainConfig.action_cost, violation_penalty, stall_penalty)."""
-  cfg = tiny(phase2_steps=256, **({"action_cost": 0.05, "violation_penalty": 1.0, "stall_penalty": 1.0}
-                                  if phase == 2 else {}))
+  Both trace with the progress pay, phase 2 with the reward's other optional terms too (TrainConfig.action_cost,
+  violation_penalty, stall_penalty)."""
+  extra = {"action_cost": 0.05, "violation_penalty": 1.0, "stall_penalty": 1.0} if phase == 2 else {}
+  cfg = tiny(phase2_steps=256, progress_reward=0.2, **extra)
   ph = iteration.make_phase(cfg, phase)
   k = jax.random.PRNGKey(0)
   c = jax.eval_shape(lambda: ph.init(k, ph.sg.init(k, ph.cfg.n_obs), ph.aa.init(k, attacker.N_OBS)))

@@ -138,7 +138,12 @@ class TrainConfig:
   stall_penalty / (1 - gamma) on the step an episode ends in a stall (no progress for env.stall_s: a failed mission in
   the RSR sense, which no spec charges; 0 = off; 1 = a stall costs what one violation costs at violation_penalty=1),
   so that hovering until the episode ends is no escape from the violation penalty; in the game like
-  violation_penalty.
+  violation_penalty.  progress_reward: the SpecGuard agent's learning reward gains progress_reward per metre the
+  true vehicle comes closer to its current goal (take-off altitude, waypoint, landing point) than ever before on
+  that leg (the env's 'progress' metric): a leg pays its length once however it is flown, so the pay is
+  time-neutral but for the discount, which makes progress now worth more than progress later; it reaches the
+  present where the completion bonus and the stall charge, 20-100 s ahead, do not (0 = off; at 0.2 a cruise step
+  of 0.5 m pays 0.1). Shaping, like action_cost: the attack agent's reward and the logged returns exclude it.
   attack_*: the attack agent's game (ppo/attacker.AttackerConfig): the sensors it may spoof, up to
   attack_max_sensors at once, its time budget per episode, no attack before attack_min_onset_s, and the reward
   weights (alpha the zero-sum term, beta stealth, gamma the location term: attacking near obstacles).
@@ -176,6 +181,7 @@ class TrainConfig:
   action_cost: float = 0.0
   violation_penalty: float = 0.0
   stall_penalty: float = 0.0
+  progress_reward: float = 0.0
   obs_clip: float = 10.0
   sg: PPOConfig = PPOConfig()
   aa: PPOConfig = PPOConfig(ent_coef=0.01)
@@ -270,6 +276,7 @@ class TrainConfig:
     checks.number("action_cost", self.action_cost, 0)
     checks.number("violation_penalty", self.violation_penalty, 0)
     checks.number("stall_penalty", self.stall_penalty, 0)
+    checks.number("progress_reward", self.progress_reward, 0)
     checks.number("attack_max_duration_s", self.attack_max_duration_s, 0, lo_open=True)
     checks.integer("attack_max_sensors", self.attack_max_sensors, 1, len(SENSOR_NAMES))
     checks.number("attack_min_onset_s", self.attack_min_onset_s, 0)

@@ -10,7 +10,8 @@ reverse; the turn is data in the carry, so both branches are one compiled progra
 
 Reward seen by SG: the env's per-step compliance reward (in [0, 1] normalised) + the completion bonus on mission
 completion - the violation penalty on the step a spec's violation becomes certain (TrainConfig.violation_penalty)
-- the stall penalty on the step an episode ends in a stall (TrainConfig.stall_penalty);
+- the stall penalty on the step an episode ends in a stall (TrainConfig.stall_penalty); it learns from that + the
+progress pay (TrainConfig.progress_reward) - the action cost (TrainConfig.action_cost);
 AA's: AttackerEnv.reward (zero-sum by default). SG's policy loss is masked to the steps where its action
 reached the vehicle (override active: a phase of override_phases, and the alarm up for RC); its value function
 learns from all.
@@ -298,6 +299,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     r_learn = r_sg
     if cfg.action_cost > 0 and base.config.override_residual:   # residual setpoints only, not absolute moves
       r_learn = r_sg - networks.residual_cost(setpoint, cfg.speeds, mask, cfg.action_cost)
+    if cfg.progress_reward > 0:   # metres closer to the current goal than ever on this leg (the env's metric)
+      r_learn = r_learn + cfg.progress_reward * nxt.metrics["progress"]
     out["sg"] = {"obs": obs, "next_obs": final_obs, "action": a_sg, "logp": logp_sg, "reward": r_learn,
                  "terminated": term, "done": done, "mask": mask}
     ep_ret = ep_ret + r_sg
