@@ -148,8 +148,11 @@ def value_module(hidden: Sequence[int], activation: str = "tanh", dtype: str = "
 def residual_cost(setpoint, speeds, active, cost: float):
   """The SpecGuard agent's cost of a residual setpoint (TrainConfig.action_cost): cost * mean((setpoint / speeds)^2)
   over the 3 axes, where the residual is in effect (active [...] 0/1), in reward units per step: 0 for no residual,
-  `cost` for a full-scale one. setpoint [..., 3] m/s; speeds [3] m/s per axis."""
-  effort = jnp.mean(jnp.square(setpoint / jnp.asarray(speeds, jnp.float32)), axis=-1)
+  `cost` for a full-scale one. setpoint [..., 3] m/s; speeds [3] m/s per axis. An axis of speed 0 (no authority on
+  it: its setpoint is always 0) costs nothing, rather than 0 / 0."""
+  speeds = jnp.asarray(speeds, jnp.float32)
+  scaled = jnp.where(speeds > 0, setpoint / jnp.where(speeds > 0, speeds, 1.0), 0.0)
+  effort = jnp.mean(jnp.square(scaled), axis=-1)
   return cost * active * effort
 
 
