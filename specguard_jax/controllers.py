@@ -165,7 +165,7 @@ def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
           ("override_residual", bool(ev.override_residual)), ("detector", ev.detector),
           ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)),
-          ("override_phases", ev.override_phases))
+          ("override_phases", ev.override_phases), ("recovery_rule", ev.recovery_rule))
 
 
 def load_run_policy(run_dir: str):

@@ -234,24 +234,11 @@ def lanes_on_cpu(monkeypatch):
   return calls
 
 
-def test_env_routes_the_batch_through_the_lanes_kernel(lanes_on_cpu):
-  """A drone env with the lanes kernel (stood in for on the CPU) keeps P packed [121] from reset on,
-  hands the kernel the whole vmapped batch, and steps as the XLA env does: 6 steps of 3 vehicles."""
-  import envs
-  ref_env, env = envs.make("drone"), envs.make("drone")
-  env._ekf_kernel = env._shadow_kernel = "lanes"     # (envs.make(ekf_kernel="lanes") would need a Hopper GPU)
-  (_, ref), (_, out) = _rollouts(ref_env, env, 6)
-  assert lanes_on_cpu and all(shape == (3, ekf_lib.N_PACKED) for shape in lanes_on_cpu)
-  assert out.info["sim"]["ekf"].P.shape == (6, 3, ekf_lib.N_PACKED)
-  np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-4, atol=1e-4)
-  np.testing.assert_allclose(np.asarray(ekf_lib.as_square(out.info["sim"]["ekf"].P)),
-                             np.asarray(ref.info["sim"]["ekf"].P), rtol=1e-4, atol=1e-8)
-
-
 def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
   """The whole phase-2 env (autopilot EKF and the reconstruction's shadow filter on the kernel, stood in for on the
-  CPU; both P packed from reset on) against the XLA env: 8 closed-loop steps (40 ticks) of 3 vehicles, no attack
-  (what the reconstruction does to P under attack, on packed P: test_packed_layout_helpers_equal_the_square_ones)."""
+  CPU) against the XLA env: both P kept packed [121] from reset on, the kernel handed the whole vmapped batch, 8
+  closed-loop steps (40 ticks) of 3 vehicles, no attack (what the reconstruction does to P under attack, on packed P:
+  test_packed_layout_helpers_equal_the_square_ones)."""
   import envs
   kw = dict(control_mode="reactive", detector="residual", reconstruction=True)
   ref_env, env = envs.make("drone", **kw), envs.make("drone", **kw)
@@ -261,6 +248,8 @@ def test_phase2_env_with_the_lanes_kernel_follows_the_xla_env(lanes_on_cpu):
   sim = s0.info["sim"]
   assert sim["ekf"].P.shape == (3, ekf_lib.N_PACKED) and sim["recon"].shadow.P.shape == (3, ekf_lib.N_PACKED)
   assert len(lanes_on_cpu) == 2     # the autopilot's and the shadow's EKF (on the CPU every tick is the full one)
+  assert all(shape == (3, ekf_lib.N_PACKED) for shape in lanes_on_cpu)   # the whole batch in one call
+  assert out.info["sim"]["ekf"].P.shape == (8, 3, ekf_lib.N_PACKED)     # kept packed through the steps
   np.testing.assert_allclose(np.asarray(out.obs), np.asarray(ref.obs), rtol=1e-3, atol=1e-3)
   np.testing.assert_allclose(np.asarray(out.reward), np.asarray(ref.reward), rtol=1e-3, atol=1e-4)
   for get in (lambda o: o.info["sim"]["ekf"], lambda o: o.info["sim"]["recon"].shadow):

@@ -435,7 +435,14 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
     assert got == want, name
   assert controllers.run_overrides(config.TrainConfig()) == (
       ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
-      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"))
+      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"),
+      ("recovery_rule", "none"))
+  # A policy trained over the rule-based fallback (a residual on its setpoint) is flown over it; phase 1 (no alarm,
+  # no reconstruction) has no rule.
+  over_rule = config.TrainConfig().with_env(recovery_rule="fallback").validate()
+  assert config.env_config(over_rule, 1).recovery_rule == "none"
+  assert config.env_config(over_rule, 2).recovery_rule == "fallback"
+  assert dict(controllers.run_overrides(over_rule))["recovery_rule"] == "fallback"
   cfg = tiny(phase2_steps=256)   # the envs the trainer and the held-out evaluation build carry these configs
   assert iteration.make_env(cfg, 1).config == config.env_config(cfg, 1)
   assert iteration.make_env(cfg, 2).env.config == config.env_config(cfg, 2)

@@ -91,7 +91,7 @@ def env_config(cfg: "TrainConfig", phase) -> EnvConfig:
   mode = "reactive" if cfg.variant == "rc" else "override"
   if phase == 1:
     return dataclasses.replace(env, control_mode="override", detector="none", detector_delay=0.0, reconstruction=False,
-                               ekf_records=False)
+                               ekf_records=False, recovery_rule="none")   # a rule acts only under an alarm
   if phase == 2:
     return dataclasses.replace(env, control_mode=mode,
                                ekf_records=env.ekf_records and env.detector in RESIDUAL_DETECTORS)
