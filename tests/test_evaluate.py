@@ -39,6 +39,15 @@ def report(tmp_path_factory):
   E.clear_cache()
 
 
+def test_report_names_the_rule_a_controller_flies_over(report):
+  """A run trained over the fallback rule is flown over it; the report's header says so (none: no line)."""
+  from specguard_jax import report as R
+  _, rep = report
+  assert "recovery_rule" not in R.markdown(rep)
+  rep = dict(rep, meta=dict(rep["meta"], recovery_rules={"main/specguard_rc": "fallback"}))
+  assert "- rule under the alarm (EnvConfig.recovery_rule), where not none: main/specguard_rc fallback" in R.markdown(rep)
+
+
 def test_report_files_and_keys(report):
   out, rep = report
   for name in ("report.json", "report.md", "records/main__no_protection.npz", "records/main__autopilot_copy.npz"):
@@ -48,6 +57,7 @@ def test_report_files_and_keys(report):
     assert os.path.getsize(path) > 5000, fig
   g = rep["groups"]["main"]
   assert g["settings"] == ["attack_free", "gps/overt", "gyro/overt"]
+  assert g["controllers"]["no_protection"]["recovery_rule"] == "none" and rep["meta"]["recovery_rules"] == {}
   for c in ("no_protection", "autopilot_copy"):
     for s in g["settings"] + ["pooled/overt", "pooled/attacked"]:
       m = g["metrics"][c][s]

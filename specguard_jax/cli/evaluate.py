@@ -628,7 +628,8 @@ def main(argv=None) -> int:
     grp["controllers"][ctrl.name] = {"description": ctrl.description,
                                      "env_overrides": {k: R.jsonable(v) for k, v in ctrl.env_overrides},
                                      "compile_s": timing["compile_s"], "run_s": timing["run_s"], "steps": steps,
-                                     "recon_mode": env.config.recon_mode if env.config.reconstruction else None}
+                                     "recon_mode": env.config.recon_mode if env.config.reconstruction else None,
+                                     "recovery_rule": env.config.recovery_rule}
     results["rollouts"].append({"group": gname, "controller": ctrl.name, "missions": int(len(rec["complete"])),
                                 **timing})
     bar.step(f"{gname}: {ctrl.name} done")
@@ -651,7 +652,9 @@ def main(argv=None) -> int:
                        "config": R.jsonable(dataclasses.asdict(p["redteam"]["config"]))} if p["redteam"] else None),
           "simulator": "specguard-jax MJX simulator (not AirSim)", "recon": args.recon or "fused",
           "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
-                          for c, v in grp["controllers"].items()}}
+                          for c, v in grp["controllers"].items()},
+          "recovery_rules": {f"{g}/{c}": v["recovery_rule"] for g, grp in results["groups"].items()
+                             for c, v in grp["controllers"].items() if v["recovery_rule"] != "none"}}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
   report["meta"]["eval_wall_s"] = wall
