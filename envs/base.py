@@ -129,6 +129,10 @@ class EnvConfig:
   oracle_share: float = 0.25    # detector 'mixed': share of episodes whose alarm and diagnosis are the oracle's
   detector_config: Any = None   # specguard_jax.detection.DetectorConfig; None -> the vehicle's calibrated preset
   override_residual: bool = False  # True: the action is ADDED to the navigator's setpoint (residual control)
+  # True: the action [6] carries, after the velocity setpoint [3], a residual [3] on the acceleration setpoint (m/s^2,
+  # override_frame) that the velocity controller hands the attitude loop (attitude + collective thrust), in effect
+  # where the velocity override is (control_mode, override_phases). Vehicles with an attitude loop only (the drone).
+  override_attitude: bool = False
   reconstruction: bool = False  # selective state reconstruction while the alarm is up (needs a detector)
   dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
   # How the reconstruction estimates the compromised components (estimation.recon.ReconConfig.mode): "fused" a
@@ -266,7 +270,7 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
   checks.number(f"{prefix}oracle_share", cfg.oracle_share, 0, 1)
-  for name in ("domain_randomization", "reward_normalize", "override_residual", "reconstruction", "nan_fallback",
+  for name in ("domain_randomization", "reward_normalize", "override_residual", "override_attitude", "reconstruction", "nan_fallback",
                "ekf_records", "unroll_ticks"):
     checks.one_of(prefix + name, getattr(cfg, name), (True, False))
 
@@ -287,10 +291,13 @@ class RAVEnv(Env):
   vehicle: str = ""
   asset: str = ""
   radius: float = 0.5  # collision radius of the vehicle (m): obstacle_distance below this is a collision
+  attitude_loop: bool = False   # whether _vehicle_tick takes an acceleration-setpoint residual (override_attitude)
 
   def __init__(self, config: EnvConfig | None = None, **overrides):
     config = dataclasses.replace(config or EnvConfig(), **overrides)
     config.validate()
+    if config.override_attitude and not self.attitude_loop:
+      raise ValueError(f"override_attitude: the {self.vehicle} has no attitude loop to take an acceleration residual")
     self.config = config
     self.mj_model = mujoco.MjModel.from_xml_path(assets.asset_path(self.asset))
     self.mj_model.opt.timestep = config.tick_dt
@@ -412,7 +419,8 @@ class RAVEnv(Env):
 
   @property
   def action_size(self) -> int:
-    return 3
+    """[3] velocity setpoint (m/s), or [6] with the acceleration-setpoint residual (m/s^2, override_attitude)."""
+    return 6 if self.config.override_attitude else 3
 
   @property
   def backend(self) -> str:
@@ -518,12 +526,14 @@ class RAVEnv(Env):
     mission, world, sim0 = info["mission"], info["world"], info["sim"]
     rng, k_ticks = jax.random.split(info["rng"])
     override_vel = self._override_velocity(action, sim0)
+    override_acc = self._override_accel(action, sim0) if self.config.override_attitude else None
     override = self._override_active(sim0)
     attack = info["attack"]
 
     def tick(carry, key, gps_due):
       phys, sim = carry
-      phys, sim = self._tick(phys, sim, mission, world, override_vel, override, key, attack, gps_due=gps_due)
+      phys, sim = self._tick(phys, sim, mission, world, override_vel, override, key, attack, gps_due=gps_due,
+                             override_acc=override_acc)
       return (phys, sim), sim["truth"].pos
 
     keys = jax.random.split(k_ticks, self.config.ticks_per_step)
@@ -639,9 +649,11 @@ class RAVEnv(Env):
     carry, pos = jax.lax.scan(group, carry, keys.reshape((-1, p) + keys.shape[1:]))
     return carry, pos.reshape((-1, 3))
 
-  def _tick(self, phys, sim, mission, world, override_vel, override, key, attack=None, gps_due=None):
+  def _tick(self, phys, sim, mission, world, override_vel, override, key, attack=None, gps_due=None,
+            override_acc=None):
     """One autopilot tick. gps_due: whether this tick can carry a GPS sample, for every env (`_tick_loop`'s schedule;
-    a Python bool, or an unbatched traced bool), or None (any tick can: the full EKF update)."""
+    a Python bool, or an unbatched traced bool), or None (any tick can: the full EKF update). override_acc: the
+    policy's acceleration-setpoint residual [3] (world m/s^2; override_attitude), or None."""
     cfg = self.config
     k_sense, k_gust = jax.random.split(key)
     with jax.named_scope("sensors"):
@@ -693,10 +705,11 @@ class RAVEnv(Env):
                                    g_est, sim["det"].alarm > 0, est.pos, world.rally_points)
     use_override = override & override_in_phase(cfg.override_phases, nav.phase)
     vel_sp = jnp.where(use_override, override_vel + (vel_nav if cfg.override_residual else 0.0), vel_nav)
+    acc_residual = None if override_acc is None else jnp.where(use_override, override_acc, 0.0)
     gust = self._gust_step(sim["gust"], sim["dr"], k_gust)
     sim = dict(sim, sensors=sens_state, readings=rd_ctrl, ekf=est, nav=nav, gust=gust)
     with jax.named_scope("autopilot"):   # the vehicle's controller; its mjx.step is scoped "physics"
-      phys, sim = self._vehicle_tick(phys, sim, mission, vel_sp, leg_dir)
+      phys, sim = self._vehicle_tick(phys, sim, mission, vel_sp, leg_dir, acc_residual)
     return phys, dict(sim, readings=readings, ekf=ekf)
 
   def _ekf_update(self, ekf, readings, gps_due):
@@ -838,8 +851,15 @@ class RAVEnv(Env):
     return obs_lib.recovery_context(alarm, diagnosed, since, std, ranges)
 
   def _override_velocity(self, action, sim):
-    """Action [3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""
-    a = jnp.asarray(action, jnp.float32)[:3]
+    """Action [:3] (m/s) -> world velocity setpoint, rotated by the estimated yaw in the 'body' frame."""
+    return self._override_to_world(jnp.asarray(action, jnp.float32)[:3], sim)
+
+  def _override_accel(self, action, sim):
+    """Action [3:6] (m/s^2) -> world acceleration-setpoint residual, rotated as the velocity part is."""
+    return self._override_to_world(jnp.asarray(action, jnp.float32)[3:6], sim)
+
+  def _override_to_world(self, a, sim):
+    """A yaw-frame vector [3] of the override -> world frame ('body' frame: rotated by the estimated yaw)."""
     if self.config.override_frame == "body":
       est = sim["recon"].shadow if self.config.reconstruction else sim["ekf"]
       yaw = ekf_lib.ekf_euler(est)[2]
@@ -892,8 +912,9 @@ class RAVEnv(Env):
   def _vehicle_crashed(self, sim, signals):
     return jnp.zeros((), bool)
 
-  def _vehicle_tick(self, phys: PhysicsState, sim, mission, vel_sp, leg_dir):
+  def _vehicle_tick(self, phys: PhysicsState, sim, mission, vel_sp, leg_dir, acc_residual=None):
     """One tick of the vehicle's controller and physics: (PhysicsState after the tick, sim with truth, ctrl, vehicle).
-    Steps `mjx.step(self._model(dr), self.physics_data(phys, ctrl=..., ...))` and returns `PhysicsState.of(data)`."""
+    Steps `mjx.step(self._model(dr), self.physics_data(phys, ctrl=..., ...))` and returns `PhysicsState.of(data)`.
+    acc_residual: world m/s^2 [3] added to the acceleration setpoint (vehicles with `attitude_loop`), or None."""
     raise NotImplementedError
 

@@ -33,6 +33,7 @@ class DroneEnv(RAVEnv):
   vehicle = "drone"
   asset = "drone.xml"
   radius = 0.35
+  attitude_loop = True
 
   def __init__(self, config=None, mc_params: px4.MulticopterParams | None = None, **overrides):
     super().__init__(config, **overrides)
@@ -81,7 +82,7 @@ class DroneEnv(RAVEnv):
     flipped = up < jnp.cos(TILT_CRASH)
     return sim["vehicle"]["hit"] | flipped
 
-  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir):
+  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir, acc_residual=None):
     dt = self.config.tick_dt
     ekf, readings, nav, veh, dr = sim["ekf"], sim["readings"], sim["nav"], sim["vehicle"], sim["dr"]
     # ---- autopilot ----
@@ -93,6 +94,8 @@ class DroneEnv(RAVEnv):
     armed = ~((nav.phase == nav_lib.DONE) & veh["on_ground"])
     rate_est = readings.gyro - ekf.gyro_bias
     acc_sp, ctrl = px4.velocity_control(self.mc_params, sim["ctrl"], vel_sp, ekf.vel, dt)
+    if acc_residual is not None:   # SpecGuard's attitude + thrust residual (EnvConfig.override_attitude)
+      acc_sp = acc_sp + acc_residual
     if self.recovery is not None:   # baseline hook (PID-Piper, FTC): the acceleration (attitude + thrust) setpoint
       sim, acc_sp = self.recovery.acc_setpoint(sim, acc_sp, vel_sp)
     ctrl, rotors, _ = px4.attitude_cascade(self.mc_params, self.airframe, ctrl, acc_sp, yaw_sp, ekf.quat, rate_est, dt,

@@ -78,7 +78,8 @@ class RoverEnv(RAVEnv):
   def _vehicle_extra_init(self):
     return {"steer": jnp.zeros(()), "throttle": jnp.zeros(())}
 
-  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir):
+  def _vehicle_tick(self, phys, sim, mission, vel_sp, leg_dir, acc_residual=None):
+    del acc_residual   # no attitude loop (RAVEnv.attitude_loop False: override_attitude is refused)
     dt = self.config.tick_dt
     p = self.rover_params
     ekf, veh, dr = sim["ekf"], sim["vehicle"], sim["dr"]

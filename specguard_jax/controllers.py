@@ -163,7 +163,8 @@ def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   ev = config_lib.env_config(cfg, "eval")
   rec = ev.reconstruction if reconstruction is None else reconstruction
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
-          ("override_residual", bool(ev.override_residual)), ("detector", ev.detector),
+          ("override_residual", bool(ev.override_residual)), ("override_attitude", bool(ev.override_attitude)),
+          ("detector", ev.detector),
           ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)),
           ("override_phases", ev.override_phases), ("recovery_rule", ev.recovery_rule))
 

@@ -307,7 +307,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
     rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
-    size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action, axis=-1), 0.0)
+    # the velocity setpoint's size (m/s; an attitude run's acceleration residual, action[..., 3:], left out)
+    size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action[..., :3], axis=-1), 0.0)
     rec["action_sum"] = rec["action_sum"] + size
     rec["action_max"] = jnp.maximum(rec["action_max"], size)
     new = tree_where(s.done > 0, s, nxt)

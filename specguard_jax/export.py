@@ -4,7 +4,7 @@ The deployed function is obs [B, n_obs] float32 ->
   x = clip((obs - mean) / std, -clip, clip)         Brax running_statistics.normalize + the trainer's clip
   out = MLP(x)                                      Policy.forward (Gemm + activation per layer)
   discrete:  logits [B, 6], action = argmax(logits) [B], setpoint = DIRECTIONS[action] * speeds [B, 3] m/s
-  gaussian:  mean [B, n], setpoint = tanh(mean) * speeds [B, 3] m/s
+  gaussian:  mean [B, n], setpoint = tanh(mean) * speeds [B, n]: velocity m/s [3] (+ attitude residual m/s^2 [3])
 `jax_policy_fn` is the JAX reference; `export_onnx` writes the same function as an ONNX graph (built with
 onnx.helper, opset 17, ir_version 8, dynamic batch dim 'B') and refuses to write it unless onnxruntime matches the
 reference (|diff| <= 1e-5 + 1e-5 * max|output|, same argmax up to float ties). A run directory holds
@@ -59,10 +59,16 @@ def _normalizer_arrays(normalizer) -> tuple[np.ndarray, np.ndarray]:
   return mean, std
 
 
-def _speeds(speeds) -> np.ndarray:
+def _speeds(speeds, policy: Policy) -> np.ndarray:
+  """The setpoint's scale per output: [3] velocity (m/s per axis), or [6] with the acceleration residual (m/s^2;
+  EnvConfig.override_attitude) for a gaussian policy of 6 outputs."""
   s = np.asarray(speeds, np.float32)
-  if s.shape != (3,) or not np.all(np.isfinite(s)):
-    raise ValueError(f"speeds must be 3 finite numbers (m/s per axis), got shape {s.shape}")
+  if s.ndim != 1 or s.shape[0] not in (3, 6) or not np.all(np.isfinite(s)):
+    raise ValueError(f"speeds must be 3 (velocity, m/s) or 6 (+ attitude residual, m/s^2) finite numbers, "
+                     f"got shape {s.shape}")
+  want = 3 if policy.kind == "discrete" else policy.n
+  if s.shape[0] != want:
+    raise ValueError(f"{s.shape[0]} speeds for a {policy.kind} policy of {policy.n} outputs (needs {want})")
   return s
 
 
@@ -133,9 +139,9 @@ def normalize_obs(obs, mean, std, clip: float | None = 10.0):
 
 def jax_policy_fn(policy: Policy, params, normalizer, speeds, clip: float | None = 10.0):
   """Jittable obs [B, n_obs] -> dict of the ONNX graph's outputs: discrete {'logits' [B, 6], 'action' [B] int32
-  (int64 in ONNX), 'setpoint' [B, 3]}; gaussian {'mean' [B, n], 'setpoint' [B, 3]} (setpoint in m/s)."""
+  (int64 in ONNX), 'setpoint' [B, 3]}; gaussian {'mean' [B, n], 'setpoint' [B, n]} (m/s, then m/s^2)."""
   mean, std = _normalizer_arrays(normalizer)
-  speeds, clip = _speeds(speeds), _clip(clip)
+  speeds, clip = _speeds(speeds, policy), _clip(clip)
   layers = _layers(policy, params)
   if layers[0][0].shape[0] != mean.shape[0]:
     raise ValueError(f"normalizer has {mean.shape[0]} obs dims, policy expects {layers[0][0].shape[0]}")
@@ -162,7 +168,7 @@ def save_policy(run_dir: str, policy: Policy, params, normalizer, speeds, clip: 
   evaluate.py builds the same observation; None: not recorded (read back as the 24-input paper layout)."""
   mean, std = _normalizer_arrays(normalizer)
   layers = _layers(policy, params)
-  speeds, clip = _speeds(speeds), _clip(clip)
+  speeds, clip = _speeds(speeds, policy), _clip(clip)
   if layers[0][0].shape[0] != mean.shape[0]:
     raise ValueError(f"normalizer has {mean.shape[0]} obs dims, policy expects {layers[0][0].shape[0]}")
   tree = {"net": {f"dense_{i}": {"kernel": k, "bias": b} for i, (k, b) in enumerate(layers)}}
@@ -191,7 +197,7 @@ def _one_line(e: BaseException) -> str:
 
 
 def load_policy(run_dir: str):
-  """(policy, params, {'mean','std'} [n_obs], speeds [3] m/s, clip) from a run directory written by save_policy.
+  """(policy, params, {'mean','std'} [n_obs], speeds [n] (m/s, then m/s^2), clip) from a run dir by save_policy.
   Arrays come back as numpy float32. Missing or malformed files -> ValueError naming the file."""
   cfg_path, pol_path = os.path.join(run_dir, CONFIG_FILE), os.path.join(run_dir, POLICY_FILE)
   try:
@@ -207,7 +213,7 @@ def load_policy(run_dir: str):
       raise ValueError(f"hidden must be a list of layer sizes, got {cfg['hidden']!r}")
     policy = Policy(kind=cfg["kind"], n=int(cfg["n"]), hidden=tuple(int(h) for h in cfg["hidden"]),
                     activation=cfg["activation"])
-    speeds, clip, n_obs = _speeds(cfg["speeds"]), _clip(cfg["clip"]), int(cfg["n_obs"])
+    speeds, clip, n_obs = _speeds(cfg["speeds"], policy), _clip(cfg["clip"]), int(cfg["n_obs"])
     if "obs_layout" in cfg:
       _obs_layout(cfg["obs_layout"], n_obs)
   except (TypeError, ValueError) as e:
@@ -275,7 +281,7 @@ def build_onnx(policy: Policy, params, normalizer, speeds, *, clip: float | None
   if not MIN_OPSET <= int(opset) <= MAX_OPSET:
     raise ValueError(f"opset must be in [{MIN_OPSET}, {MAX_OPSET}], got {opset}")
   mean, std = _normalizer_arrays(normalizer)
-  speeds, clip = _speeds(speeds), _clip(clip)
+  speeds, clip = _speeds(speeds, policy), _clip(clip)
   layers = _layers(policy, params)
   n_obs = layers[0][0].shape[0]
   if n_obs != mean.shape[0]:
@@ -321,7 +327,7 @@ def build_onnx(policy: Policy, params, normalizer, speeds, *, clip: float | None
   else:
     node("Mul", [node("Tanh", ["mean"], "mean_tanh"), const("speeds", speeds)], "setpoint")
     outputs = [helper.make_tensor_value_info("mean", TensorProto.FLOAT, ["B", policy.n]),
-               helper.make_tensor_value_info("setpoint", TensorProto.FLOAT, ["B", 3])]
+               helper.make_tensor_value_info("setpoint", TensorProto.FLOAT, ["B", policy.n])]
 
   graph = helper.make_graph(nodes, f"specguard_{policy.kind}_policy", [obs_info], outputs, initializer=inits,
                             doc_string="obs -> clip((obs-mean)/std) -> MLP -> logits|mean, setpoint [m/s]")

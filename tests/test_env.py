@@ -512,6 +512,28 @@ def test_velocity_setpoint_override():
   np.testing.assert_allclose(vel[:, :2], [[3.0, -2.0]] * 2, atol=0.4)
 
 
+def test_attitude_residual_reaches_the_attitude_loop():
+  """EnvConfig.override_attitude: the action's entries 3:6 (m/s^2, world frame here) are added to the acceleration
+  setpoint the attitude loop flies. From one cruising state, twice: +3 m/s^2 along x for 0.5 s speeds the drone up
+  along x against the same velocity setpoint without it; the rover, with no attitude loop, refuses the option."""
+  env = envs.make("drone", world="open_beach", mission=SHORT_DRONE, control_mode="override", override_attitude=True,
+                  domain_randomization=False)
+  assert env.action_size == 6
+  cruise = jnp.array([3.0, -2.0, 0.0, 0.0, 0.0, 0.0])
+  key = jax.random.PRNGKey(6)
+  policy = lambda obs, k: jnp.broadcast_to(cruise, obs.shape[:-1] + (6,))  # noqa: E731
+  state, _, _ = rollout.fly_batch(env, jnp.stack([key, key]), 150, policy=policy)
+  assert np.all(np.asarray(state.info["sim"]["nav"].phase) == 1)   # both cruising, under override, the same state
+  act = jnp.stack([cruise, cruise.at[3].set(3.0)])
+  step = lambda s, _: (jax.vmap(env.step)(s, act), None)  # noqa: E731
+  out = jax.jit(lambda s: jax.lax.scan(step, s, None, length=5)[0])(state)
+  v0, v1 = np.asarray(out.info["sim"]["truth"].vel)
+  assert v1[0] - v0[0] > 0.3, (v0, v1)               # the residual moved the vehicle along x ...
+  assert abs(v1[1] - v0[1]) < 0.1, (v0, v1)          # ... and only along x
+  with pytest.raises(ValueError, match="no attitude loop"):
+    envs.make("rover", override_attitude=True)
+
+
 def test_autoreset_in_chunks_equals_one_vmapped_reset(drone_env):
   """reset_chunk cuts the reset of the envs + pool (and the bulk pool refresh) into equal chunks run one after
   another: 6 envs + 4 pool entries in chunks of 3 (4 chunks of 3, the last padded) give the states one vmapped

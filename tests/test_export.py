@@ -23,10 +23,11 @@ def _normalizer(seed=1, n_obs=N_OBS):
           "std": rng.uniform(0.05, 20.0, n_obs).astype(np.float32)}
 
 
-def _policy(kind, hidden, activation="tanh", seed=0, final_gain=30.0, flax_init=False, n_obs=N_OBS):
+def _policy(kind, hidden, activation="tanh", seed=0, final_gain=30.0, flax_init=False, n_obs=N_OBS, n=None):
   """Random policy params (Policy.init when flax_init, else numpy Gaussians with the same layout, which skips the
-  init's XLA compile); the final layer is scaled up so logits/means are O(1) rather than O(0.01)."""
-  pol = Policy(kind, 6 if kind == "discrete" else 3, hidden=hidden, activation=activation)
+  init's XLA compile); the final layer is scaled up so logits/means are O(1) rather than O(0.01). n: the gaussian
+  head's outputs (default 3; 6 with the attitude residual)."""
+  pol = Policy(kind, 6 if kind == "discrete" else (n or 3), hidden=hidden, activation=activation)
   rng = np.random.default_rng(seed)
   if flax_init:
     params = jax.tree_util.tree_map(np.asarray, jax.jit(pol.init, static_argnums=1)(jax.random.PRNGKey(seed), n_obs))
@@ -185,6 +186,30 @@ def test_save_load_round_trip(tmp_path, kind):
   # ... and the exported graph of the loaded policy agrees with it.
   res = ex.export_onnx(str(tmp_path / "p.onnx"), *ex.load_policy(run)[:4], clip=clip2, latency_calls=0)
   assert res["max_abs_diff"] <= 1e-5 and res["argmax_equal"]
+
+
+def test_attitude_policy_saves_loads_and_exports_with_parity(tmp_path):
+  """A policy of 6 outputs (EnvConfig.override_attitude): velocity [3] m/s and acceleration residual [3] m/s^2, each
+  scaled by its entry of the 6 speeds; save/load, ONNX parity, and a scale count that does not fit is one line."""
+  pol, params = _policy("gaussian", (32, 16), n=6)
+  norm = _normalizer()
+  scales = np.concatenate([SPEEDS, [3.0, 2.5, 1.0]]).astype(np.float32)
+  run = str(tmp_path / "run")
+  ex.save_policy(run, pol, params, norm, scales, 10.0)
+  pol2, params2, norm2, scales2, _ = ex.load_policy(run)
+  assert pol2 == pol and pol2.n == 6
+  np.testing.assert_array_equal(scales2, scales)
+  res = ex.export_onnx(str(tmp_path / "p.onnx"), pol2, params2, norm2, scales2, latency_calls=0)
+  assert res["max_abs_diff"] <= 1e-5
+  obs = ex.parity_obs(norm, 9)
+  got = _run_onnx(str(tmp_path / "p.onnx"), obs)
+  ref = jax.jit(ex.load_jax_policy(run))(obs)
+  assert got["setpoint"].shape == (len(obs), 6)
+  np.testing.assert_allclose(got["setpoint"], np.tanh(np.asarray(ref["mean"])) * scales, atol=1e-5)
+  with pytest.raises(ValueError, match="3 speeds for a gaussian policy of 6 outputs"):
+    ex.save_policy(str(tmp_path / "bad"), pol, params, norm, SPEEDS)
+  with pytest.raises(ValueError, match="6 speeds for a discrete policy"):
+    ex.export_onnx(str(tmp_path / "d.onnx"), *_policy("discrete", (16, 16)), norm, scales)
 
 
 @pytest.mark.parametrize("layout", obs_lib.LAYOUTS)

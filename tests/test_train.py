@@ -435,7 +435,7 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
     assert got == want, name
   assert controllers.run_overrides(config.TrainConfig()) == (
       ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
-      ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"),
+      ("override_attitude", False), ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"),
       ("recovery_rule", "none"))
   # A policy trained over the rule-based fallback (a residual on its setpoint) is flown over it; phase 1 (no alarm,
   # no reconstruction) has no rule.
@@ -619,6 +619,25 @@ def test_compile_ahead_compiles_phase_2_and_the_evaluation_once_off_the_main_thr
   assert ahead("jit(_rollout)") == [True], log
   env = iteration.eval_env(runs["cfg"])   # the precompiled rollout served the held-out evaluation once, then went
   assert not any(dict(ck[:-1])["env"] is env for ck in evaluation._COMPILED)
+
+
+def test_attitude_interface_trains_and_exports(tmp_path):
+  """env.override_attitude (train.py --attitude): SpecGuard's policy has 6 outputs (velocity, then the acceleration
+  residual scaled by accels), the attack agent's action follows them in phase 2, and the run saves the 6 scales and
+  exports an ONNX graph with parity. (Phase 2 alone, without the reconstruction: a smaller program, the same wiring.)"""
+  cfg = tiny(env=dict(override_attitude=True, reconstruction=False), campaign_share=0.0, phase1_steps=0,
+             phase2_steps=128, alternate_iters=1, accels=(2.0, 2.0, 1.0))
+  assert cfg.action_scales == (4.0, 4.0, 2.0, 2.0, 2.0, 1.0) and iteration.sg_policy(cfg).n == 6
+  s = runner.train(cfg, str(tmp_path / "run"), progress=False)
+  assert s["env_steps"] == 128
+  policy, params, _, scales, _ = export.load_policy(str(tmp_path / "run"))
+  assert policy.n == 6 and scales.tolist() == list(cfg.action_scales)
+  assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(params))
+  assert os.path.isfile(tmp_path / "run" / "policy.onnx")
+  with pytest.raises(ValueError, match="drone only"):
+    dataclasses.replace(cfg, vehicle="rover").validate()
+  with pytest.raises(ValueError, match="needs action gaussian"):
+    dataclasses.replace(cfg, action="discrete").validate()
 
 
 def test_sweep_compiles_phase_2_ahead_once(tmp_path):

@@ -113,6 +113,9 @@ def _parser() -> _Parser:
                     "flight, no specs (the FTC baseline, specguard_jax/baselines/ftc.py)")
   _config_flag(ap, "--action", key="action", choices=("gaussian", "discrete"),
                help="continuous velocity setpoint or the paper's 6")
+  _config_flag(ap, "--attitude", key="env.override_attitude", action="store_const", const=True,
+               help="the policy also adds a residual to the attitude + thrust (acceleration) setpoint, scaled by "
+                    "accels (m/s^2; drone, gaussian action; EnvConfig.override_attitude)")
   _config_flag(ap, "--no-reconstruction", key="env.reconstruction", action="store_const", const=False,
                help="ablation: no state reconstruction in phase 2")
   _config_flag(ap, "--detector", key="env.detector", choices=TRAIN_DETECTORS,

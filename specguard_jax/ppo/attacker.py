@@ -82,13 +82,14 @@ def adv_init():
 
 def observation(cfg: AttackerConfig, speeds, state: State, adv: dict, sg_setpoint) -> jax.Array:
   """Attacker observation [45] (module docstring) of an unbatched env state (reads obs and info's time, mission and
-  alarm), the agent's state `adv` and the controller's velocity setpoint [3] (m/s) of this step."""
+  alarm), the agent's state `adv` and the controller's setpoint of this step, of which it sees the velocity [3] (m/s;
+  an attitude residual after it is left out, so the attack agent's inputs are the same for either interface)."""
   info = state.info
   speeds = np.asarray(speeds, np.float32)
   alarm = info.get("alarm", jnp.zeros(()))
   progress = info["time"] / jnp.maximum(info["mission"].nominal_duration, 1.0)
   return jnp.concatenate([
-      sg_setpoint / jnp.maximum(speeds, 1e-3), state.obs[:12],
+      sg_setpoint[..., :3] / jnp.maximum(speeds[:3], 1e-3), state.obs[:12],
       (adv["bias"] / (_HI[:, None] * cfg.scale)).reshape(-1), adv["mask"] * adv["started"],
       jnp.stack([adv["used"] / cfg.max_duration_s, adv["on"], adv["ended"].astype(jnp.float32), alarm,
                  jnp.minimum(progress, 2.0), jnp.minimum(state.obs[18], 50.0) / 50.0])]).astype(jnp.float32)
@@ -126,7 +127,7 @@ def plan(cfg: AttackerConfig, adv: dict, raw, t, dt: float):
 
 
 class AttackerEnv(Wrapper):
-  """Unbatched wrapper: step(state, action) with action = concat(SpecGuard action [3], attacker raw [10]).
+  """Unbatched wrapper: step(state, action) with action = concat(SpecGuard action [env.action_size], attacker raw [10]).
   mix: optional scripted campaigns (ppo.campaign_mix.CampaignMix) that replace the agent's attack in a share of the
   episodes (info['scripted'] [] bool, drawn at reset with the attack it flies, info['scripted_attack'])."""
 
@@ -139,7 +140,7 @@ class AttackerEnv(Wrapper):
 
   @property
   def action_size(self) -> int:
-    return 3 + N_ACT
+    return self.env.action_size + N_ACT
 
   def reset(self, rng):
     s = self.env.reset(rng)
@@ -156,7 +157,8 @@ class AttackerEnv(Wrapper):
 
   def step(self, state: State, action) -> State:
     cfg, info = self.cfg, state.info
-    sg_action, raw = action[:3], action[3:]
+    n_sg = self.env.action_size   # SpecGuard's setpoint: [3], or [6] with the attitude residual
+    sg_action, raw = action[:n_sg], action[n_sg:]
     sched, new_adv = plan(cfg, info["adv"], raw, info["time"], self.env.dt)
     if self.mix is not None:   # a scripted campaign's episode flies its own attack
       sched = jax.tree.map(lambda a, b: jnp.where(info["scripted"], a, b), info["scripted_attack"], sched)

@@ -118,7 +118,8 @@ class TrainConfig:
 
   variant: 'rc' (Reactive Control: autopilot flies, SpecGuard takes over while the detector's alarm is up) or 'pc'
   (Proactive Control: SpecGuard always flies).  action: 'gaussian' (continuous velocity setpoint, default: it trains
-  better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).
+  better, see BENCHMARKS.md) or 'discrete' (the paper's 6 moves).  env.override_attitude (gaussian only): the policy
+  also outputs a residual on the attitude + thrust (acceleration) setpoint, scaled by `accels`; `action_scales`.
   alternate_iters: iterations one agent trains while the other is frozen (paper Algorithm 2).  converge_eps /
   converge_window: stop phase 2 early (paper Algorithm 2; on by default, the phase-2 budget is the cap) when the
   average returns of both agents change by less than eps of their size per iteration, between the last two windows
@@ -157,6 +158,7 @@ class TrainConfig:
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
   speeds: tuple = (4.0, 4.0, 2.0)   # velocity-setpoint (correction) scale per axis (m/s), yaw frame
+  accels: tuple = (3.0, 3.0, 3.0)   # acceleration-setpoint residual scale per axis (m/s^2, yaw frame; env.override_attitude)
   init_log_std: float = -1.0        # initial log std of the Gaussian head
   num_envs: int = 256
   unroll_length: int = 32
@@ -200,6 +202,12 @@ class TrainConfig:
   network_dtype: str = "float32"
 
   @property
+  def action_scales(self) -> tuple:
+    """The scale of each of SpecGuard's setpoint outputs: speeds [3] (m/s), then accels [3] (m/s^2) where
+    env.override_attitude (networks.to_setpoint: tanh(action) * action_scales)."""
+    return tuple(self.speeds) + (tuple(self.accels) if self.env.override_attitude else ())
+
+  @property
   def n_obs(self) -> int:
     """SpecGuard's observation size: its env's layout (envs.observation)."""
     return obs_lib.size(self.env.obs_layout, self.env.proximity_sectors, self.env.obs_history)
@@ -227,6 +235,10 @@ class TrainConfig:
       raise ValueError(f"unknown reward {env.reward!r}; choose one of {', '.join(REWARDS)}")
     if self.action not in ("gaussian", "discrete"):
       raise ValueError(f"unknown action head {self.action!r}; choose gaussian or discrete")
+    if env.override_attitude and self.action != "gaussian":
+      raise ValueError("env.override_attitude needs action gaussian (the discrete head has velocity moves only)")
+    if env.override_attitude and self.vehicle != "drone":
+      raise ValueError(f"env.override_attitude: the {self.vehicle} has no attitude loop (drone only)")
     for name, d in (("env.detector", env.detector), ("eval_detector", self.eval_detector)):
       if d not in TRAIN_DETECTORS:
         raise ValueError(f"unknown {name} {d!r}; choose one of {', '.join(TRAIN_DETECTORS)}")
@@ -270,6 +282,9 @@ class TrainConfig:
     checks.sequence("speeds", self.speeds, length=3)
     for i, v in enumerate(self.speeds):
       checks.number(f"speeds[{i}]", v, 0)
+    checks.sequence("accels", self.accels, length=3)
+    for i, v in enumerate(self.accels):
+      checks.number(f"accels[{i}]", v, 0)
     checks.sequence("attack_sensors", self.attack_sensors)
     for name in ("init_log_std", "attack_alpha", "attack_beta", "attack_gamma", "completion_bonus"):
       checks.number(name, getattr(self, name))

@@ -91,8 +91,8 @@ def make_env(cfg: TrainConfig, phase: int):
 
 
 def sg_policy(cfg: TrainConfig) -> networks.Policy:
-  return networks.Policy(cfg.action, 6 if cfg.action == "discrete" else 3, tuple(cfg.hidden), cfg.activation,
-                         init_log_std=cfg.init_log_std)
+  n = 6 if cfg.action == "discrete" else len(cfg.action_scales)   # 6 moves, or a setpoint of 3 or 6 outputs
+  return networks.Policy(cfg.action, n, tuple(cfg.hidden), cfg.activation, init_log_std=cfg.init_log_std)
 
 
 def aa_policy(cfg: TrainConfig) -> networks.Policy:
@@ -267,7 +267,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     obs = state.obs
     with jax.named_scope("policy"), nets():
       a_sg, logp_sg = sg.sample(sg_s, obs, k1)
-      setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.speeds)
+      setpoint = networks.to_setpoint(cfg.action, a_sg, cfg.action_scales)
     phase_now = state.info["sim"]["nav"].phase
     mask = override_in_phase(base.config.override_phases, phase_now).astype(jnp.float32)
     if rc:
@@ -298,7 +298,7 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
     # Values are computed after the rollout, in a few large batches (`values`), not here.
     r_learn = r_sg
     if cfg.action_cost > 0 and base.config.override_residual:   # residual setpoints only, not absolute moves
-      r_learn = r_sg - networks.residual_cost(setpoint, cfg.speeds, mask, cfg.action_cost)
+      r_learn = r_sg - networks.residual_cost(setpoint, cfg.action_scales, mask, cfg.action_cost)
     if cfg.progress_reward > 0:   # metres closer to the current goal than ever on this leg (the env's metric)
       r_learn = r_learn + cfg.progress_reward * nxt.metrics["progress"]
     out["sg"] = {"obs": obs, "next_obs": final_obs, "action": a_sg, "logp": logp_sg, "reward": r_learn,
@@ -454,7 +454,8 @@ def _make_phase(cfg: TrainConfig, phase: int, mesh, members: int) -> Phase:
 @dataclasses.dataclass(frozen=True)
 class DeterministicPolicy:
   """Hashable deterministic SpecGuard controller for evaluation: params {'policy', 'mean', 'std'} and obs [B, n] ->
-  velocity setpoint [B, 3] (m/s, yaw frame): mode of the action head on clipped normalised observations."""
+  setpoint [B, len(speeds)] (velocity m/s [3], then the acceleration residual m/s^2 [3] of an override_attitude run;
+  yaw frame): mode of the action head on clipped normalised observations. speeds: the scale per output."""
   policy: networks.Policy
   kind: str
   speeds: tuple
@@ -478,7 +479,7 @@ def _eval_env(vehicle, config):
 
 def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:
   """The held-out evaluation's rollout arguments (evaluation.precompile's job) for a SpecGuard agent state."""
-  fn = DeterministicPolicy(sg_policy(cfg), cfg.action, tuple(cfg.speeds), cfg.obs_clip)
+  fn = DeterministicPolicy(sg_policy(cfg), cfg.action, cfg.action_scales, cfg.obs_clip)
   p = {"policy": sg_state.params["policy"], "mean": sg_state.normalizer.mean, "std": sg_state.normalizer.std}
   return {"env": eval_env(cfg), "policy": fn, "policy_params": p, "missions": missions}
 

@@ -147,9 +147,10 @@ def value_module(hidden: Sequence[int], activation: str = "tanh", dtype: str = "
 
 def residual_cost(setpoint, speeds, active, cost: float):
   """The SpecGuard agent's cost of a residual setpoint (TrainConfig.action_cost): cost * mean((setpoint / speeds)^2)
-  over the 3 axes, where the residual is in effect (active [...] 0/1), in reward units per step: 0 for no residual,
-  `cost` for a full-scale one. setpoint [..., 3] m/s; speeds [3] m/s per axis. An axis of speed 0 (no authority on
-  it: its setpoint is always 0) costs nothing, rather than 0 / 0."""
+  over its outputs, where the residual is in effect (active [...] 0/1), in reward units per step: 0 for no residual,
+  `cost` for a full-scale one. setpoint [..., n]; speeds [n] (TrainConfig.action_scales: m/s per axis, then m/s^2 of
+  an attitude residual). An output of scale 0 (no authority on it: its setpoint is always 0) costs nothing, rather
+  than 0 / 0."""
   speeds = jnp.asarray(speeds, jnp.float32)
   scaled = jnp.where(speeds > 0, setpoint / jnp.where(speeds > 0, speeds, 1.0), 0.0)
   effort = jnp.mean(jnp.square(scaled), axis=-1)
@@ -157,7 +158,8 @@ def residual_cost(setpoint, speeds, active, cost: float):
 
 
 def to_setpoint(kind: str, action, speeds):
-  """SpecGuard's action -> velocity setpoint [.., 3] m/s (yaw frame). speeds: [3] m/s per axis."""
+  """SpecGuard's action -> setpoint [.., n] (yaw frame): velocity [3] m/s, then, for a gaussian head of 6 outputs
+  (EnvConfig.override_attitude), the acceleration residual [3] m/s^2. speeds: [n], the scale of each output."""
   speeds = jnp.asarray(speeds, jnp.float32)
   if kind == "discrete":
     return jnp.asarray(DIRECTIONS)[action] * speeds

@@ -426,10 +426,10 @@ def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
   layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors, cfg.env.obs_history)
-  export.save_policy(run_dir, policy, params, norm, cfg.speeds, cfg.obs_clip, obs_layout=layout)
+  export.save_policy(run_dir, policy, params, norm, cfg.action_scales, cfg.obs_clip, obs_layout=layout)
   # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
   with jax.default_matmul_precision("float32"):
-    res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.speeds,
+    res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.action_scales,
                              clip=cfg.obs_clip,
                              metadata={"vehicle": cfg.vehicle, "variant": cfg.variant, "obs_layout": layout})
   return {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in res.items()}
