@@ -159,14 +159,16 @@ def load_run_config(run_dir: str):
 
 def run_overrides(cfg, *, reconstruction: bool | None = None) -> tuple:
   """EnvConfig overrides of a run's deployment env (these fields of ppo.config.env_config(cfg, "eval"), without
-  worlds/reward: the evaluation picks the worlds; the reward does not change what is flown)."""
+  worlds/reward: the evaluation picks the worlds; the reward does not change what is flown). reconstruction False
+  (the no-reconstruction ablation) also drops a recovery rule, which reads the reconstruction's uncertainty."""
   ev = config_lib.env_config(cfg, "eval")
   rec = ev.reconstruction if reconstruction is None else reconstruction
+  rule = ev.recovery_rule if rec else "none"
   return (("control_mode", ev.control_mode), ("override_frame", ev.override_frame),
           ("override_residual", bool(ev.override_residual)), ("override_attitude", bool(ev.override_attitude)),
           ("detector", ev.detector),
           ("detector_delay", float(ev.detector_delay)), ("reconstruction", bool(rec)),
-          ("override_phases", ev.override_phases), ("recovery_rule", ev.recovery_rule))
+          ("override_phases", ev.override_phases), ("recovery_rule", rule))
 
 
 def load_run_policy(run_dir: str):

@@ -330,7 +330,8 @@ def build_onnx(policy: Policy, params, normalizer, speeds, *, clip: float | None
                helper.make_tensor_value_info("setpoint", TensorProto.FLOAT, ["B", policy.n])]
 
   graph = helper.make_graph(nodes, f"specguard_{policy.kind}_policy", [obs_info], outputs, initializer=inits,
-                            doc_string="obs -> clip((obs-mean)/std) -> MLP -> logits|mean, setpoint [m/s]")
+                            doc_string="obs -> clip((obs-mean)/std) -> MLP -> logits|mean, setpoint [m/s; "
+                                       "outputs 3:6 of a 6-output policy m/s^2]")
   model = helper.make_model(graph, producer_name="specguard-jax", opset_imports=[helper.make_opsetid("", opset)])
   model.ir_version = IR_VERSION
   props = {"kind": policy.kind, "n": str(policy.n), "n_obs": str(n_obs), "hidden": json.dumps(list(policy.hidden)),

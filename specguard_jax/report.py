@@ -350,7 +350,7 @@ def markdown(rep) -> str:
   if meta.get("recon_modes"):
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]
-  if meta.get("recovery_rules"):   # a learned policy trained over a rule is flown over it (a residual on its setpoint)
+  if meta.get("recovery_rules"):   # the fallback, and a learned policy trained over the rule (a residual on it)
     L[-1:-1] = ["- rule under the alarm (EnvConfig.recovery_rule), where not none: " + ", ".join(
         f"{k} {v}" for k, v in meta["recovery_rules"].items())]
   L += hard_markdown(ex.get("hard"))

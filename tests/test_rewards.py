@@ -154,6 +154,10 @@ def test_residual_cost_scales_with_the_residual_where_it_is_in_effect():
   # speeds z = 0 (no vertical authority, --set speeds=[4,4,0]): that axis costs nothing, never 0 / 0 = NaN
   flat = residual_cost(jnp.array([[0.0, 0.0, 0.0], [4.0, -4.0, 0.0]]), (4.0, 4.0, 0.0), jnp.ones(2), 0.05)
   np.testing.assert_allclose(flat, [0.0, 0.05 * 2 / 3], rtol=1e-6)
+  # an attitude residual (6 outputs): the velocity part costs what it did, the acceleration part as much again
+  six = residual_cost(jnp.array([[4.0, -4.0, 2.0, 0.0, 0.0, 0.0], [4.0, -4.0, 2.0, 3.0, -3.0, 3.0]]),
+                      speeds + (3.0, 3.0, 3.0), jnp.ones(2), 0.05)
+  np.testing.assert_allclose(six, [0.05, 0.1], rtol=1e-6)
 
 
 def test_s12_pays_beside_a_keep_out_prism_taller_than_the_vehicle():

@@ -443,6 +443,7 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
   assert config.env_config(over_rule, 1).recovery_rule == "none"
   assert config.env_config(over_rule, 2).recovery_rule == "fallback"
   assert dict(controllers.run_overrides(over_rule))["recovery_rule"] == "fallback"
+  assert dict(controllers.run_overrides(over_rule, reconstruction=False))["recovery_rule"] == "none"   # the ablation
   cfg = tiny(phase2_steps=256)   # the envs the trainer and the held-out evaluation build carry these configs
   assert iteration.make_env(cfg, 1).config == config.env_config(cfg, 1)
   assert iteration.make_env(cfg, 2).env.config == config.env_config(cfg, 2)

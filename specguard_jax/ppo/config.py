@@ -126,7 +126,7 @@ class TrainConfig:
   of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units
   of the maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance
   forever), so finishing the mission never looks worse than dawdling.  action_cost: the SpecGuard agent's cost per
-  step of a residual setpoint while it is in effect, action_cost * mean((setpoint / speeds)^2) in reward units
+  step of a residual setpoint while it is in effect, action_cost * sum((setpoint / action_scales)^2) / 3 in reward units
   (0..action_cost per step; residual actions only, not the paper's absolute moves; the attack agent's zero-sum
   reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
   spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").  violation_penalty: the SpecGuard

@@ -146,14 +146,15 @@ def value_module(hidden: Sequence[int], activation: str = "tanh", dtype: str = "
 
 
 def residual_cost(setpoint, speeds, active, cost: float):
-  """The SpecGuard agent's cost of a residual setpoint (TrainConfig.action_cost): cost * mean((setpoint / speeds)^2)
+  """The SpecGuard agent's cost of a residual setpoint (TrainConfig.action_cost): cost * sum((setpoint / speeds)^2) / 3
   over its outputs, where the residual is in effect (active [...] 0/1), in reward units per step: 0 for no residual,
-  `cost` for a full-scale one. setpoint [..., n]; speeds [n] (TrainConfig.action_scales: m/s per axis, then m/s^2 of
-  an attitude residual). An output of scale 0 (no authority on it: its setpoint is always 0) costs nothing, rather
-  than 0 / 0."""
+  `cost` for a full-scale velocity residual, and as much again for a full-scale attitude residual (each output weighs
+  the same with or without one). setpoint [..., n]; speeds [n] (TrainConfig.action_scales: m/s per axis, then m/s^2
+  of an attitude residual). An output of scale 0 (no authority on it: its setpoint is always 0) costs nothing,
+  rather than 0 / 0."""
   speeds = jnp.asarray(speeds, jnp.float32)
   scaled = jnp.where(speeds > 0, setpoint / jnp.where(speeds > 0, speeds, 1.0), 0.0)
-  effort = jnp.mean(jnp.square(scaled), axis=-1)
+  effort = jnp.sum(jnp.square(scaled), axis=-1) / 3.0
   return cost * active * effort
 
 
