@@ -270,8 +270,8 @@ def check_env_values(cfg: EnvConfig, prefix: str = "") -> None:
   for name in ("clearance", "critical_weight", "detector_delay"):
     checks.number(prefix + name, getattr(cfg, name), 0)
   checks.number(f"{prefix}oracle_share", cfg.oracle_share, 0, 1)
-  for name in ("domain_randomization", "reward_normalize", "override_residual", "override_attitude", "reconstruction", "nan_fallback",
-               "ekf_records", "unroll_ticks"):
+  for name in ("domain_randomization", "reward_normalize", "override_residual", "override_attitude", "reconstruction",
+               "nan_fallback", "ekf_records", "unroll_ticks"):
     checks.one_of(prefix + name, getattr(cfg, name), (True, False))
 
 

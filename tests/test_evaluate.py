@@ -45,7 +45,8 @@ def test_report_names_the_rule_a_controller_flies_over(report):
   _, rep = report
   assert "recovery_rule" not in R.markdown(rep)
   rep = dict(rep, meta=dict(rep["meta"], recovery_rules={"main/specguard_rc": "fallback"}))
-  assert "- rule under the alarm (EnvConfig.recovery_rule), where not none: main/specguard_rc fallback" in R.markdown(rep)
+  line = "- rule under the alarm (EnvConfig.recovery_rule), where not none: main/specguard_rc fallback"
+  assert line in R.markdown(rep)
 
 
 def test_report_files_and_keys(report):

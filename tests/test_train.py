@@ -435,8 +435,8 @@ def test_phase_and_eval_env_configs_are_the_old_trainers():
     assert got == want, name
   assert controllers.run_overrides(config.TrainConfig()) == (
       ("control_mode", "reactive"), ("override_frame", "body"), ("override_residual", True),
-      ("override_attitude", False), ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True), ("override_phases", "all"),
-      ("recovery_rule", "none"))
+      ("override_attitude", False), ("detector", "residual"), ("detector_delay", 0.5), ("reconstruction", True),
+      ("override_phases", "all"), ("recovery_rule", "none"))
   # A policy trained over the rule-based fallback (a residual on its setpoint) is flown over it; phase 1 (no alarm,
   # no reconstruction) has no rule.
   over_rule = config.TrainConfig().with_env(recovery_rule="fallback").validate()

@@ -126,9 +126,9 @@ class TrainConfig:
   of converge_window iterations (runner.converged; 0 = off).  completion_bonus: reward on mission completion in units
   of the maximal per-step reward, times 1 / (1 - gamma) when negative (-1 = the return of perfect compliance
   forever), so finishing the mission never looks worse than dawdling.  action_cost: the SpecGuard agent's cost per
-  step of a residual setpoint while it is in effect, action_cost * sum((setpoint / action_scales)^2) / 3 in reward units
-  (0..action_cost per step; residual actions only, not the paper's absolute moves; the attack agent's zero-sum
-  reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
+  step of a residual setpoint while it is in effect, action_cost * sum((setpoint / action_scales)^2) / 3 in reward
+  units (0..action_cost per step for a velocity residual; residual actions only, not the paper's absolute moves; the
+  attack agent's zero-sum reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
   spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").  violation_penalty: the SpecGuard
   agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight (critical_weight for critical specs,
   1 otherwise, 0 for monitored-only ones) on the step a spec's violation becomes certain (the online STL monitor's
@@ -158,7 +158,7 @@ class TrainConfig:
   hidden: tuple = (256, 256, 256)
   activation: str = "tanh"
   speeds: tuple = (4.0, 4.0, 2.0)   # velocity-setpoint (correction) scale per axis (m/s), yaw frame
-  accels: tuple = (3.0, 3.0, 3.0)   # acceleration-setpoint residual scale per axis (m/s^2, yaw frame; env.override_attitude)
+  accels: tuple = (3.0, 3.0, 3.0)   # acceleration residual scale per axis (m/s^2, yaw frame; env.override_attitude)
   init_log_std: float = -1.0        # initial log std of the Gaussian head
   num_envs: int = 256
   unroll_length: int = 32
