@@ -128,13 +128,14 @@ class TrainConfig:
   forever), so finishing the mission never looks worse than dawdling.  action_cost: the SpecGuard agent's cost per
   step of a residual setpoint while it is in effect, action_cost * sum((setpoint / action_scales)^2) / 3 in reward
   units (0..action_cost per step for a velocity residual; residual actions only, not the paper's absolute moves; the
-  attack agent's zero-sum reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes the strict optimum where a
-  spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").  violation_penalty: the SpecGuard
-  agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight (critical_weight for critical specs,
-  1 otherwise, 0 for monitored-only ones) on the step a spec's violation becomes certain (the online STL monitor's
-  settled robustness turns negative: the step the mission becomes a violation in the SVR sense; 0 = off; 1 = a
-  violation costs what a compliant episode is worth), so that no time saved pays for a violation (docs/DESIGN.md
-  "Reward incentives"). Unlike action_cost it is part of the game: the attack agent's zero-sum reward gains it and
+  attack agent's zero-sum reward and the logged returns exclude it): "leave a compliant autopilot alone" becomes
+  the strict optimum where a spec reward is flat (the capped reward, docs/DESIGN.md "Reward incentives").
+  violation_penalty: the SpecGuard agent's reward drops by violation_penalty / (1 - gamma) times the spec's weight
+  (critical_weight for critical specs, 1 otherwise, 0 for monitored-only ones) on the step a spec's violation becomes
+  certain (the online STL monitor's settled robustness turns negative: the step the mission becomes a violation in the
+  SVR sense; 0 = off; 1 = a violation costs what a compliant episode is worth), so that no time saved pays for a
+  violation (docs/DESIGN.md "Reward incentives").
+  Unlike action_cost it is part of the game: the attack agent's zero-sum reward gains it and
   the logged returns (and so the convergence rule) include it.  stall_penalty: the SpecGuard agent's reward drops by
   stall_penalty / (1 - gamma) on the step an episode ends in a stall (no progress for env.stall_s: a failed mission in
   the RSR sense, which no spec charges; 0 = off; 1 = a stall costs what one violation costs at violation_penalty=1),
