@@ -786,6 +786,19 @@ class RAVEnv(Env):
     }
     return {k: jnp.asarray(v, jnp.float32) for k, v in s.items()}
 
+  def believed_signals(self, state) -> dict:
+    """The monitored signals computed from the estimate the vehicle flies on (the reconstruction's while it is
+    configured, else the EKF's: position and velocity) instead of the true state, against the same map, mission
+    and navigator: what a controller acting on its estimate can see of each spec (the policy's observation holds
+    the same obstacle distance, fence margin and path deviation). dict name -> [] float32, as _signals."""
+    sim = state.info["sim"]
+    if self.config.reconstruction:   # x_rec equals the EKF's estimate while the alarm is down
+      vel = sim["x_rec"][3:6]
+    else:
+      vel = sim["ekf"].vel
+    believed = sim["truth"].replace(pos=self._estimated_position(sim), vel=vel)
+    return self._signals(state.info["world"], state.info["mission"], believed, sim["nav"])
+
   def _goal_distance(self, mission, truth, nav):
     """Distance (m) to what the navigator is heading for: take-off point, target waypoint or landing point."""
     wp = mission.waypoints[nav.target]

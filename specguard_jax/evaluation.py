@@ -255,7 +255,9 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   hold_steps = max(1, int(round(metrics.RECOVERY_HOLD_S / env.dt)))
   rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
           "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32),
-          "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32)}
+          "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32),
+          "seen": jnp.zeros((b, weights.shape[0]), bool)}
+  believed = jax.vmap(env.believed_signals)
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
   if attacker is not None:
     rec0["adv"] = attacker.init(b)
@@ -306,6 +308,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     rec["ok_steps"] = jnp.where(live, jnp.where(ok, rec["ok_steps"] + 1, 0), rec["ok_steps"])
     back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
     rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
+    # per spec: its step condition failed on the signals of the estimate the vehicle flies on (metrics.blind)
+    rec["seen"] = rec["seen"] | (live[:, None] & weights & (per_spec(believed(nxt)) < 0.5))
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
     # the velocity setpoint's size (m/s; an attitude run's acceleration residual, action[..., 3:], left out)
     size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action[..., :3], axis=-1), 0.0)
@@ -339,7 +343,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
          "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "bad_t": rec["bad_t"],
          "rec_t": rec["rec_t"], "ok_since": rec["ok_since"], "override_s": rec["override_s"],
-         "action_sum": rec["action_sum"], "action_max": rec["action_max"],
+         "action_sum": rec["action_sum"], "action_max": rec["action_max"], "seen": rec["seen"],
          "waypoints": mission.waypoints, "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind,
          "hazard_t": hazard_t, **extra}
   return out, rec.get("traj"), t

@@ -14,6 +14,12 @@ Definitions (what we chose where the paper leaves room):
   svr_spec[k]     per-spec SVR: among missions whose twin violated spec k, the share where spec k was violated too
                   (None where no twin violated k). spec_rate[k]: share of all missions violating spec k.
   critical_rate   share of missions violating any critical spec of the table (S1, S2, S12 by default).
+  blind           a violated critical spec whose step condition never failed on the signals computed from the
+                  estimate the vehicle flies on (record 'seen', env.believed_signals): the estimate showed the spec
+                  holding throughout. blind_critical_rate: the share of the missions violating a critical spec with
+                  such a violation; blind_spec[k]: among the missions violating critical spec k, the share unseen.
+                  A controller that acts on the estimate alone cannot see these coming; the policy's range ring
+                  (true geometry) still shows S1's.
   rsr             recovered / missions: recovered = nav completed the mission AND the true final position is within
                   5 m of the last waypoint (horizontal for landing missions and the rover) AND no crash, collision,
                   stall or NaN. Over all missions of an attacked setting (missions under attack); for attack-free
@@ -149,6 +155,13 @@ def critical_violation(r, critical) -> np.ndarray:
   return np.any(v[:, crit], -1) if crit.any() else np.zeros(v.shape[0], bool)
 
 
+def blind(r, critical) -> np.ndarray:
+  """[n, S] bool: spec k critical and violated, its condition never failed on the estimate's signals (record
+  'seen' [n, S], evaluation.rollout)."""
+  crit = np.asarray(critical, bool)
+  return _b(r, "violated") & ~_b(r, "seen") & crit[None, :]
+
+
 def t2r(r, dt: float) -> np.ndarray:
   """[n] time to recovery (s): nan where not applicable (not attacked, never detected, or compliant throughout after
   detection), inf where it never recovered (see module docstring). Reads det_t, bad_t, rec_t, ok_since (the first
@@ -247,6 +260,10 @@ def summarize(r, twin=None, gt=None, *, attacked: bool, dt: float, spec_names, c
   out["stall_rate"] = rate(_b(r, "stall"))
   out["any_violation_rate"] = rate(viol, _b(r, "attacked")) if attacked else dict(out["svr_all_rate"])
   out["critical_rate"] = rate(critical_violation(r, critical))
+  if "seen" in r and np.any(critical):
+    bl, v = blind(r, critical), _b(r, "violated")
+    out["blind_critical_rate"] = rate(np.any(bl, -1), critical_violation(r, critical))
+    out["blind_spec"] = {s: rate(bl[:, i], v[:, i]) for i, s in enumerate(spec_names) if critical[i]}
   if per_spec:
     v = _b(r, "violated")
     out["spec_rate"] = {s: float(np.mean(v[:, i])) if n else None for i, s in enumerate(spec_names)}

@@ -355,6 +355,7 @@ def markdown(rep) -> str:
         f"{k} {v}" for k, v in meta["recovery_rules"].items())]
   L += hard_markdown(ex.get("hard"))
   L += violation_timing_markdown(rep)
+  L += blind_markdown(rep)
   L += redteam_markdown(rep.get("redteam"))
   if rep["not_run"]:
     L += ["## Not run", ""] + [f"- `{k}`: {v}" for k, v in rep["not_run"].items()] + [""]
@@ -499,6 +500,32 @@ def violation_timing_markdown(rep, group="main") -> list:
           "% [95 % interval].", "",
           "| campaign | controller | violating missions | undetected % | outside % | alarm window % |",
           "|---|---|---|---|---|---|"] + rows + [""]
+
+
+def blind_markdown(rep, group="main") -> list:
+  """Lines of the table of the critical violations the estimate never showed (metrics.blind), per hard campaign
+  and controller over the campaign's settings pooled; [] when no campaign was flown or records lack 'seen'."""
+  rows, specs = [], None
+  for c, by_setting in rep["groups"].get(group, {}).get("metrics", {}).items():
+    for k in sorted(k for k in by_setting if k.startswith("campaign/")):
+      m = by_setting[k]
+      if "blind_critical_rate" not in m or not m["blind_critical_rate"]["n"]:
+        continue
+      specs = specs or list(m["blind_spec"])
+      cells = " | ".join(_ci(m["blind_spec"][x], with_n=False) for x in specs)
+      rows.append(f"| {k[9:]} | {c} | {m['blind_critical_rate']['n']} | "
+                  f"{_ci(m['blind_critical_rate'], with_n=False)} | {cells} |")
+  if not rows:
+    return []
+  return ["## Critical violations the estimate never showed", "",
+          "Missions violating a critical spec, and the share of them where the violated spec's condition held at "
+          "every step on the signals computed from the estimate the vehicle flies on (env.believed_signals: the "
+          "reconstruction's or the EKF's position and velocity against the same map): the controller's estimate "
+          "showed the spec holding throughout. No controller acting on that estimate can see such a violation "
+          "coming; the policy's range ring (true geometry) still shows S1's. Per spec: among the missions "
+          "violating it. % [95 % interval].", "",
+          "| campaign | controller | critical-violating missions | blind % | " + " | ".join(
+              f"{x} blind %" for x in specs) + " |", "|---|---|---|---|" + "---|" * len(specs)] + rows + [""]
 
 
 def redteam_markdown(log) -> list:

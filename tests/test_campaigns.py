@@ -207,6 +207,10 @@ def test_hard_suite_end_to_end(hard):
     assert sum(vt[k]["k"] for k in ("undetected", "outside", "alarm_window")) == vt["undetected"]["n"] == n, camp
     violators += n
   assert violators > 0 and "## Where the violations happen" in md
+  # the critical violations the estimate never showed: per mission and spec, whether the estimate's signals failed
+  assert rec["seen"].shape == (len(rec["setting"]), len(g["env"]["spec_names"])) and rec["seen"].dtype == bool
+  crit = sum(pooled[f"campaign/{c}"]["blind_critical_rate"]["n"] for c in ("long", "hazard", "designed", "multi"))
+  assert ("## Critical violations the estimate never showed" in md) == (crit > 0)
 
 
 def test_designed_rates_flag(tmp_path):

@@ -33,7 +33,11 @@ def flight():
       target = jax.vmap(lambda m, nv: m.waypoints[nv.target])(info["mission"], info["sim"]["nav"])
       out = {"obs_pos": s.obs[:, :3] + target, "true_pos": info["sim"]["truth"].pos,
              "ekf_pos": info["sim"]["ekf"].pos, "time": info["time"], "done": s.done,
-             "collision": info["episode"]["collision"]}
+             "collision": info["episode"]["collision"], "spec_obs": s.obs[:, 18:23],
+             "true_path": info["signals"]["path_deviation"]}
+      bel = jax.vmap(env.believed_signals)(s)
+      out["believed"] = jnp.stack([bel[k] for k in ("obstacle_distance", "fence_margin", "path_deviation",
+                                                    "altitude", "speed_xy")], -1)
       return s, out
     return jax.lax.scan(body, s0, None, length=n)
 
@@ -56,6 +60,18 @@ def test_reconstructed_observation_stays_near_truth_under_gps_spoof(flight):
     # error (sensors.SensorConfig.flow_scale_sigma, 5 %), which drifts metres.
     assert err_obs.max() < 0.5 * BIAS, err_obs.max()
     assert np.median(err_ekf) > 8.0, np.median(err_ekf)   # the spoofed EKF is dragged away (bias 20 m)
+
+
+def test_believed_signals_are_the_observations_spec_entries(flight):
+  """env.believed_signals (what evaluation's blind-violation count reads) holds the spec signals of the estimate the
+  policy observes: obstacle distance, fence margin, path deviation, altitude, speed equal the observation's entries
+  18-22 (as clipped there) at every live step; they are the estimate's, not the truth's (metres apart somewhere)."""
+  _, _, tr = flight
+  alive = tr["done"].cumsum(0) == 0
+  bel = tr["believed"][alive]
+  bel = np.stack([np.minimum(bel[:, 0], 50.0), np.clip(bel[:, 1], -50.0, 50.0), bel[:, 2], bel[:, 3], bel[:, 4]], -1)
+  np.testing.assert_allclose(bel, tr["spec_obs"][alive], atol=1e-4)
+  assert np.max(np.abs(tr["believed"][..., 2] - tr["true_path"])[alive]) > 0.5
 
 
 def test_mission_survives_gps_spoof_with_reconstruction(flight):

@@ -23,6 +23,8 @@ def recs(n, **kw):
   for k in ("override_s", "action_sum", "action_max"):
     if k in kw:
       r[k] = np.zeros(n)
+  if "seen" in kw:
+    r["seen"] = np.zeros((n, len(SPECS)), bool)
   for k, v in kw.items():
     r[k] = np.asarray(v, r[k].dtype).reshape(r[k].shape) if np.ndim(v) else np.full(r[k].shape, v, r[k].dtype)
   return r
@@ -198,6 +200,24 @@ def test_violation_timing_splits_the_violating_attacked_missions_by_the_alarm():
   vt = summ(r)["violation_timing"]
   assert [(vt[k]["k"], vt[k]["n"]) for k in ("undetected", "outside", "alarm_window")] == [(1, 4), (1, 4), (2, 4)]
   assert "violation_timing" not in summ(r, attacked=False)
+
+
+def test_blind_critical_violations_the_estimate_never_showed():
+  """Four missions: S2 violated and never seen on the estimate (blind), S2 violated and seen, S12 violated and
+  unseen plus S1 violated and seen (blind: one critical spec unseen), S4 violated unseen (not critical: not blind).
+  blind_critical_rate counts over the 3 critical violators; blind_spec per spec over its violators."""
+  viol = np.zeros((4, len(SPECS)), bool)
+  seen = np.zeros((4, len(SPECS)), bool)
+  viol[0, 1] = True
+  viol[1, 1] = seen[1, 1] = True
+  viol[2, 11] = viol[2, 0] = seen[2, 0] = True
+  viol[3, 3] = True
+  s = summ(recs(4, violated=viol, seen=seen))
+  assert (s["blind_critical_rate"]["k"], s["blind_critical_rate"]["n"]) == (2, 3)
+  assert [(s["blind_spec"][x]["k"], s["blind_spec"][x]["n"]) for x in ("S1", "S2", "S12")] == [(0, 1), (1, 2), (1, 1)]
+  assert list(s["blind_spec"]) == ["S1", "S2", "S12"]
+  assert M.blind(recs(4, violated=viol, seen=seen), CRIT).sum() == 2
+  assert "blind_critical_rate" not in summ(recs(4, violated=viol))   # records without 'seen'
 
 
 def test_confidence_intervals_sane():
