@@ -787,10 +787,12 @@ class RAVEnv(Env):
     return {k: jnp.asarray(v, jnp.float32) for k, v in s.items()}
 
   def believed_signals(self, state) -> dict:
-    """The monitored signals computed from the estimate the vehicle flies on (the reconstruction's while it is
+    """The monitored signals computed from the estimate the policy observes (the reconstruction's x'_t while it is
     configured, else the EKF's: position and velocity) instead of the true state, against the same map, mission
-    and navigator: what a controller acting on its estimate can see of each spec (the policy's observation holds
-    the same obstacle distance, fence margin and path deviation). dict name -> [] float32, as _signals."""
+    and navigator: what a controller acting on that estimate can see of each spec (outside landing, the
+    observation's obstacle distance, fence margin and path deviation are these). The navigator may fly on another
+    estimate: fused reconstruction's full shadow state under a misdiagnosis, a denoising baseline's output
+    (recovery_estimator). dict name -> [] float32, as _signals."""
     sim = state.info["sim"]
     if self.config.reconstruction:   # x_rec equals the EKF's estimate while the alarm is down
       vel = sim["x_rec"][3:6]

@@ -47,6 +47,8 @@ j draw where the sensors agree, since only the timing options differ):
   action_sum, action_max [n] m/s  sum and maximum over the steps the override was active of the size (norm) of the
                          policy's setpoint: the policy's effect (a residual policy doing nothing reads 0)
   min_obstacle [n] m     closest approach to an obstacle
+  seen [n, S] bool       the spec's step condition failed at some step on the signals of the estimate the policy
+                         observes (env.believed_signals); True for a spec without a step condition (metrics.blind)
   redteam_sensor [n] int  (only with an attacker) the red-team agent's target (index into SENSOR_NAMES; -1 when
                          it never attacked or the setting is not the red-team one); its onset and end are in onset
                          and attack_end;  redteam_mask [n, 6] every sensor it spoofed (multi-sensor attacks)
@@ -248,6 +250,7 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   has_det = "alarm" in state.info
   weights = env.reward_fn.weights() > 0
   per_spec = jax.vmap(lambda sig: env.reward_fn.per_spec(sig, binary=True))
+  stepwise = jnp.asarray(env.reward_fn.step_conditions())
   b = n_set * n
   onset = state.info["attack"].onset
   attack_end = onset + state.info["attack"].duration
@@ -256,7 +259,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
           "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32),
           "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32),
-          "seen": jnp.zeros((b, weights.shape[0]), bool)}
+          # specs without a step condition count as seen: never blind (metrics.blind is a lower bound)
+          "seen": jnp.broadcast_to(~stepwise, (b, stepwise.shape[0]))}
   believed = jax.vmap(env.believed_signals)
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
   if attacker is not None:
@@ -308,8 +312,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     rec["ok_steps"] = jnp.where(live, jnp.where(ok, rec["ok_steps"] + 1, 0), rec["ok_steps"])
     back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
     rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
-    # per spec: its step condition failed on the signals of the estimate the vehicle flies on (metrics.blind)
-    rec["seen"] = rec["seen"] | (live[:, None] & weights & (per_spec(believed(nxt)) < 0.5))
+    # per spec: its step condition failed on the signals of the estimate the policy observes (metrics.blind)
+    rec["seen"] = rec["seen"] | (live[:, None] & stepwise & (per_spec(believed(nxt)) < 0.5))
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
     # the velocity setpoint's size (m/s; an attitude run's acceleration residual, action[..., 3:], left out)
     size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action[..., :3], axis=-1), 0.0)

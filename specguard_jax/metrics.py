@@ -14,12 +14,14 @@ Definitions (what we chose where the paper leaves room):
   svr_spec[k]     per-spec SVR: among missions whose twin violated spec k, the share where spec k was violated too
                   (None where no twin violated k). spec_rate[k]: share of all missions violating spec k.
   critical_rate   share of missions violating any critical spec of the table (S1, S2, S12 by default).
-  blind           a violated critical spec whose step condition never failed on the signals computed from the
-                  estimate the vehicle flies on (record 'seen', env.believed_signals): the estimate showed the spec
-                  holding throughout. blind_critical_rate: the share of the missions violating a critical spec with
-                  such a violation; blind_spec[k]: among the missions violating critical spec k, the share unseen.
-                  A controller that acts on the estimate alone cannot see these coming; the policy's range ring
-                  (true geometry) still shows S1's.
+  blind           a violated critical spec whose step condition never failed, at any step, on the signals
+                  computed from the estimate the policy observes (record 'seen', env.believed_signals): that
+                  estimate showed the spec holding throughout (its margin may still have shrunk). A lower bound on
+                  the violations the estimate missed (a spec seen failing once, anywhere, is not blind).
+                  blind_critical_rate: the share of the missions violating a critical spec with such a violation;
+                  blind_spec[k]: among the missions violating critical spec k, the share blind. A controller can
+                  still avoid them through what else it sees (the alarm, the estimate's uncertainty, the policy's
+                  range ring of the true geometry for S1), not through the spec signals of its estimate.
   rsr             recovered / missions: recovered = nav completed the mission AND the true final position is within
                   5 m of the last waypoint (horizontal for landing missions and the rover) AND no crash, collision,
                   stall or NaN. Over all missions of an attacked setting (missions under attack); for attack-free

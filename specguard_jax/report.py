@@ -518,12 +518,12 @@ def blind_markdown(rep, group="main") -> list:
   if not rows:
     return []
   return ["## Critical violations the estimate never showed", "",
-          "Missions violating a critical spec, and the share of them where the violated spec's condition held at "
-          "every step on the signals computed from the estimate the vehicle flies on (env.believed_signals: the "
-          "reconstruction's or the EKF's position and velocity against the same map): the controller's estimate "
-          "showed the spec holding throughout. No controller acting on that estimate can see such a violation "
-          "coming; the policy's range ring (true geometry) still shows S1's. Per spec: among the missions "
-          "violating it. % [95 % interval].", "",
+          "Missions violating a critical spec, and the share of them (blind) where the violated spec's condition "
+          "held at every step on the signals computed from the estimate the policy observes (env.believed_signals: "
+          "the reconstruction's or the EKF's position and velocity against the same map): the estimate showed the "
+          "spec holding throughout, so its spec signals gave no warning; only the alarm, the estimate's uncertainty "
+          "or the policy's range ring (true geometry, S1) could. A lower bound (metrics.blind). Per spec: among the "
+          "missions violating it. % [95 % interval].", "",
           "| campaign | controller | critical-violating missions | blind % | " + " | ".join(
               f"{x} blind %" for x in specs) + " |", "|---|---|---|---|" + "---|" * len(specs)] + rows + [""]
 

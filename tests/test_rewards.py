@@ -116,6 +116,17 @@ def test_binary_baseline():
   assert {n for n, v in zip(d.names, np.asarray(per)) if v == 0} == {"S9"}
 
 
+def test_step_conditions_name_the_specs_judged_at_each_step():
+  """Every built-in spec has a step condition; an added spec with a temporal body and no reward family has none
+  (evaluation counts it as seen: never a blind violation)."""
+  d = specs.drone_specs()
+  assert rewards.RewardFn.create(d).step_conditions() == (True,) * 12
+  t = specs.add_spec(d, "S13", "always(eventually[0s, 5s](altitude > 1))")
+  assert rewards.RewardFn.create(t).step_conditions() == (True,) * 12 + (False,)
+  t = specs.add_spec(d, "S13", "always(altitude > 1 and speed_xy < 20)")   # no family, a non-temporal body
+  assert rewards.RewardFn.create(t).step_conditions()[-1]
+
+
 def test_capped_reward_is_one_while_a_spec_holds_and_the_sigmoid_where_it_does_not():
   """Capped compliance: every spec that holds pays exactly 1 (so a compliant step totals the maximum and no compliant
   flight earns less than another), a violated one 2 sigma(k margin) < 1, continuous at the threshold."""

@@ -71,6 +71,11 @@ class RewardFn:
     return jnp.array([0.0 if t.family == "none" else (critical_weight if t.critical else 1.0) for t in self.terms],
                      jnp.float32)
 
+  def step_conditions(self) -> Tuple[bool, ...]:
+    """Per spec: whether it has a pass/fail condition at each step (per_spec(binary=True)): an always() over a
+    non-temporal body, or a reward family's margin. A spec with neither (a temporal body, no family) has none."""
+    return tuple(t.body is not None or t.family != "none" for t in self.terms)
+
   def per_spec(self, signals_t: Mapping[str, jnp.ndarray], binary: bool = False, capped: bool = False) -> jnp.ndarray:
     """Per-spec reward [..., n] for one step (signals_t: {name: [...]}); binary / capped: see the module docstring."""
     sig = {n: jnp.asarray(v, jnp.float32) for n, v in signals_t.items()}
