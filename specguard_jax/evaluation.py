@@ -47,8 +47,9 @@ j draw where the sensors agree, since only the timing options differ):
   action_sum, action_max [n] m/s  sum and maximum over the steps the override was active of the size (norm) of the
                          policy's setpoint: the policy's effect (a residual policy doing nothing reads 0)
   min_obstacle [n] m     closest approach to an obstacle
-  seen [n, S] bool       the spec's step condition failed at some step on the signals of the estimate the policy
-                         observes (env.believed_signals); True for a spec without a step condition (metrics.blind)
+  seen [n, S] bool       (rollout(believed=True), the default) the spec's step condition failed at some step on the
+                         signals of the estimate the policy observes (env.believed_signals); True for a spec without
+                         a step condition (metrics.blind)
   redteam_sensor [n] int  (only with an attacker) the red-team agent's target (index into SENSOR_NAMES; -1 when
                          it never attacked or the setting is not the red-team one); its onset and end are in onset
                          and attack_end;  redteam_mask [n, 6] every sensor it spoofed (multi-sensor attacks)
@@ -216,9 +217,10 @@ def _setting_salt(s: Setting) -> int:
   return zlib.crc32(s.name.encode()) & 0x7FFFFFFF
 
 
-@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy", "n_traj", "attacker"))
+@functools.partial(jax.jit, static_argnames=("env", "settings", "n", "max_steps", "policy", "n_traj", "attacker",
+                                             "believed"))
 def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, n_traj: int = 0, attacker=None,
-             attacker_params=None):
+             attacker_params=None, believed: bool = True):
   n_set = len(settings)
   mission_idx = jnp.tile(jnp.arange(n), n_set)
   setting_id = jnp.repeat(jnp.arange(n_set), n)
@@ -258,10 +260,10 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
   hold_steps = max(1, int(round(metrics.RECOVERY_HOLD_S / env.dt)))
   rec0 = {"first_alarm": big, "det_t": big, "bad_t": big, "rec_t": big, "ok_since": big,
           "ok_steps": jnp.zeros((b,), jnp.int32), "override_s": jnp.zeros((b,), jnp.float32),
-          "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32),
-          # specs without a step condition count as seen: never blind (metrics.blind is a lower bound)
-          "seen": jnp.broadcast_to(~stepwise, (b, stepwise.shape[0]))}
-  believed = jax.vmap(env.believed_signals)
+          "action_sum": jnp.zeros((b,), jnp.float32), "action_max": jnp.zeros((b,), jnp.float32)}
+  if believed:   # specs without a step condition count as seen: never blind (metrics.blind is a lower bound)
+    rec0["seen"] = jnp.broadcast_to(~stepwise, (b, stepwise.shape[0]))
+  believed_signals = jax.vmap(env.believed_signals)
   traj_idx = np.asarray([s * n + j for s in range(n_set) for j in range(min(n_traj, n))], np.int32)
   if attacker is not None:
     rec0["adv"] = attacker.init(b)
@@ -312,8 +314,8 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
     rec["ok_steps"] = jnp.where(live, jnp.where(ok, rec["ok_steps"] + 1, 0), rec["ok_steps"])
     back = live & (rec["bad_t"] < BIG) & (rec["rec_t"] >= BIG) & (rec["ok_steps"] >= hold_steps)
     rec["rec_t"] = jnp.where(back, rec["ok_since"], rec["rec_t"])
-    # per spec: its step condition failed on the signals of the estimate the policy observes (metrics.blind)
-    rec["seen"] = rec["seen"] | (live[:, None] & stepwise & (per_spec(believed(nxt)) < 0.5))
+    if believed:   # per spec: its step condition failed on the signals of the estimate the policy observes
+      rec["seen"] = rec["seen"] | (live[:, None] & stepwise & (per_spec(believed_signals(nxt)) < 0.5))
     rec["override_s"] = rec["override_s"] + jnp.where(live, nxt.info["override_active"] * env.dt, 0.0)
     # the velocity setpoint's size (m/s; an attitude run's acceleration residual, action[..., 3:], left out)
     size = jnp.where(live & (nxt.info["override_active"] > 0), jnp.linalg.norm(action[..., :3], axis=-1), 0.0)
@@ -347,18 +349,21 @@ def _rollout(env, policy, policy_params, key, settings, n: int, max_steps: int, 
          "detected": (rec["first_alarm"] < BIG), "min_obstacle": ep["min_obstacle_distance"],
          "first_alarm": rec["first_alarm"], "det_t": rec["det_t"], "bad_t": rec["bad_t"],
          "rec_t": rec["rec_t"], "ok_since": rec["ok_since"], "override_s": rec["override_s"],
-         "action_sum": rec["action_sum"], "action_max": rec["action_max"], "seen": rec["seen"],
+         "action_sum": rec["action_sum"], "action_max": rec["action_max"],
          "waypoints": mission.waypoints, "n_waypoints": mission.n_waypoints, "hazard_kind": hazard_kind,
          "hazard_t": hazard_t, **extra}
+  if believed:
+    out["seen"] = rec["seen"]
   return out, rec.get("traj"), t
 
 
-def _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker=None, attacker_params=None):
+def _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker=None, attacker_params=None,
+            believed=True):
   """The static jit arguments of `_rollout` and the compile-cache key of that configuration."""
   if any(s.redteam for s in settings) and attacker is None:
     raise ValueError("a red-team setting needs an attack agent (rollout's attacker and attacker_params)")
   static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
-                n_traj=int(n_traj), attacker=attacker)
+                n_traj=int(n_traj), attacker=attacker, believed=bool(believed))
   return static, tuple(static.items()) + (jax.tree.structure(policy_params), jax.tree.structure(attacker_params))
 
 
@@ -366,16 +371,18 @@ def precompile(jobs, *, workers: int = 0) -> dict:
   """Compile several rollouts at once, ahead of flying them, and cache them for `rollout`.
 
   jobs: list of dicts with the arguments of `rollout` (env, policy, policy_params, settings, missions, and optional
-  max_s, n_traj, attacker, attacker_params); configurations already compiled are skipped. XLA compilation releases
-  the GIL, so `workers` threads (0: one per two host cores, at most one per job) overlap the compiles: on a 16-core
-  GPU host the eight env configs of `evaluate.py --suite paper` compile together instead of one after another.
+  max_s, n_traj, attacker, attacker_params, believed); configurations already compiled are skipped. XLA
+  compilation releases the GIL, so `workers` threads (0: one per two host cores, at most one per job) overlap the
+  compiles: on a 16-core GPU host the eight env configs of `evaluate.py --suite paper` compile together instead of
+  one after another.
   Returns {job index: compile seconds of that job} and 'wall' (seconds for all of them)."""
   import concurrent.futures
   import os
   todo = []
   for i, j in enumerate(jobs):
     static, ck = _static(j["env"], j["policy"], j["policy_params"], _as_settings(j["settings"]), j["missions"],
-                         j.get("max_s", 400.0), j.get("n_traj", 0), j.get("attacker"), j.get("attacker_params"))
+                         j.get("max_s", 400.0), j.get("n_traj", 0), j.get("attacker"), j.get("attacker_params"),
+                         j.get("believed", True))
     if ck not in _COMPILED and all(ck != c for _, c, _, _ in todo):
       todo.append((i, ck, static, (j["policy_params"], j.get("attacker_params"))))
   workers = workers or max(1, min(len(todo), (os.cpu_count() or 2) // 2))
@@ -404,7 +411,8 @@ def precompile(jobs, *, workers: int = 0) -> dict:
 
 
 def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 10_000, max_s: float = 400.0,
-            n_traj: int = 0, timing: dict | None = None, cache: bool = True, attacker=None, attacker_params=None):
+            n_traj: int = 0, timing: dict | None = None, cache: bool = True, attacker=None, attacker_params=None,
+            believed: bool = True):
   """Fly `missions` missions per setting with policy(params, obs [B, n]) -> action [B, 3] (hashable: a static
   argument). attacker (hashable, static; with its attacker_params): the attack agent of the red-team settings
   (Setting.redteam), e.g. specguard_jax.ppo.redteam.RedteamAgent: init(b) -> its per-row state [b, ...];
@@ -414,9 +422,11 @@ def rollout(env, policy, policy_params, settings, *, missions: int, seed: int = 
   'n_waypoints' [K]} with K = n_settings * min(n_traj, missions), steps run).
   timing (optional dict) gets compile_s and run_s. cache: keep the compiled executable for the next call with the
   same static configuration (clear_cache() frees them); False: compile for this call only (an executable `precompile`
-  made for it is used and dropped)."""
+  made for it is used and dropped). believed: record 'seen' (the estimate's view of each spec, metrics.blind; one
+  more map query per step)."""
   settings = _as_settings(settings)
-  static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker, attacker_params)
+  static, ck = _static(env, policy, policy_params, settings, missions, max_s, n_traj, attacker, attacker_params,
+                       believed)
   key = jax.random.PRNGKey(seed)
   t0 = time.perf_counter()
   fn = _COMPILED.get(ck) if cache else _COMPILED.pop(ck, None)   # cache=False: a precompiled one serves once
@@ -449,7 +459,8 @@ def evaluate(env, policy, policy_params, *, missions: int = 1000, settings=None,
   waypoint, no crash/collision/stall), complete, collision, crash, stall, fence_breach, attacked, unfinished,
   detected, violations_per_spec; plus '_steps'."""
   settings = _as_settings(settings or default_settings())
-  rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s, cache=False)
+  rec, _, t = rollout(env, policy, policy_params, settings, missions=missions, seed=seed, max_s=max_s, cache=False,
+                      believed=False)
   crit = np.asarray(env.spec_table.critical, bool)
   res = {}
   for i, s in enumerate(settings):

@@ -481,7 +481,8 @@ def _heldout_job(cfg: TrainConfig, sg_state, missions: int) -> dict:
   """The held-out evaluation's rollout arguments (evaluation.precompile's job) for a SpecGuard agent state."""
   fn = DeterministicPolicy(sg_policy(cfg), cfg.action, cfg.action_scales, cfg.obs_clip)
   p = {"policy": sg_state.params["policy"], "mean": sg_state.normalizer.mean, "std": sg_state.normalizer.std}
-  return {"env": eval_env(cfg), "policy": fn, "policy_params": p, "missions": missions}
+  return {"env": eval_env(cfg), "policy": fn, "policy_params": p, "missions": missions,
+          "believed": False}   # as evaluation.evaluate flies it (no blind-violation record)
 
 
 def heldout(cfg: TrainConfig, sg_state: losses.AgentState, missions: int, seed: int = 10_000) -> dict:
