@@ -534,6 +534,8 @@ def _backend() -> str:
 def main(argv=None) -> int:
   args = _parser().parse_args(argv)
   t_start = time.time()
+  # the code and the moment this evaluation started (a long one may outlive its checkout's HEAD)
+  commit, started = _git_commit(), datetime.datetime.now().isoformat(timespec="seconds")
   try:
     p = plan(args)
     check_up_front(args, p)
@@ -640,8 +642,8 @@ def main(argv=None) -> int:
   bar.close()
   wall = time.time() - t_start
   meta = {"command": "python evaluate.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-          "date": datetime.datetime.now().isoformat(timespec="seconds"), "backend": backend,
-          "device": str(jax.devices()[0]), "git_commit": _git_commit(), "seed": args.seed,
+          "date": started, "backend": backend, "device": str(jax.devices()[0]), "git_commit": commit,
+          "seed": args.seed,
           "missions_per_setting": missions, "max_s": args.max_s, "mission_s": p["mission_s"], "run": args.run,
           "mission_file": args.mission, "params_file": args.params,
           "runs": p["runs"], "suite": args.suite, "profiles": list(p["profiles"]),
