@@ -137,7 +137,8 @@ class EnvConfig:
   dynamics_model: str = ""      # JSON of the fitted dynamics (estimation.model_file); "" -> assets/dynamics_<vehicle>
   # How the reconstruction estimates the compromised components (estimation.recon.ReconConfig.mode): "fused" a
   # closed-loop shadow EKF on the uncompromised sensors; "paper" the fitted model rolled forward open loop from a
-  # checkpoint at least the detector's delay old (the paper's / DeLorean's; `_recon_config`).
+  # checkpoint at least the detector's delay old (the paper's / DeLorean's; `_recon_config`); "oracle" the truth while
+  # the reconstruction is active (fused underneath; a bound, not a method: recon.oracle_outputs).
   recon_mode: str = "fused"
   # Prior-work baselines (specguard_jax.baselines, docs/BASELINES.md), active while the detector's alarm is up:
   # 'software_sensors' (SSR: model-predicted readings replace the compromised sensor's before the autopilot's EKF) |
@@ -659,6 +660,7 @@ class RAVEnv(Env):
     with jax.named_scope("sensors"):
       sens_state, readings = sensors_lib.sense(self.sensor_cfg, sim["sensors"], sim["truth"], k_sense, cfg.tick_dt,
                                                obstacle_distance=sim["obstacle_distance"])
+      clean = readings   # before the attack: what the oracle reconstruction hands the autopilot
       readings = self._attack(readings, sim, attack)
     rd_ekf = readings
     if self.recovery is not None:   # baseline hook (SSR): readings the autopilot's EKF fuses
@@ -691,6 +693,8 @@ class RAVEnv(Env):
                                                        u_prev, sim["det"].mask, sim["det"].alarm, cfg.tick_dt,
                                                        anchor, gps_due, kernel=self._shadow_kernel,
                                                        records=cfg.ekf_records)
+      if cfg.recon_mode == "oracle":   # the bound: the truth while the reconstruction is active
+        est, rd_ctrl, x_rec = recon_lib.oracle_outputs(rec.active, est, rd_ctrl, x_rec, sim["truth"], clean)
       # Recovery switch: the autopilot's EKF resumes from the reconstructed state, not from what it fused under attack.
       ekf = tree_where(handback, est, ekf)
       sim = dict(sim, recon=rec, x_rec=x_rec)

@@ -15,6 +15,8 @@ Built in:
                       reconstructed state (the reconstruction mode: evaluate.py --recon, default "fused").
   delorean_paper      the same with the paper's reconstruction (EnvConfig.recon_mode "paper": the fitted model
                       rolled forward open loop from the checkpoint), whatever --recon says.
+  delorean_oracle     the same on a perfect reconstruction (recon_mode "oracle": the truth while the alarm is up), a
+                      bound: what no reconstruction can fix (detection delay, before the alarm, after the hand-back).
   fallback            DeLorean plus the rule-based, uncertainty-aware fallback (no learning, EnvConfig.recovery_rule
                       'fallback', specguard_jax.autopilot.fallback): while the alarm is up the navigator's setpoint
                       slows down with the reconstruction's position uncertainty, widens obstacle clearance and holds
@@ -266,6 +268,13 @@ def _delorean_paper(ctx: BuildContext) -> Controller:
                                          "open loop from the last trusted checkpoint for the compromised components")
 
 
+def _delorean_oracle(ctx: BuildContext) -> Controller:
+  c = _delorean(ctx)
+  return dataclasses.replace(c, name="delorean_oracle", env_overrides=c.env_overrides + (("recon_mode", "oracle"),),
+                             description="DeLorean on a perfect reconstruction (recon_mode oracle: the truth while "
+                                         "the alarm is up): a bound on what reconstruction can give the autopilot")
+
+
 def _fallback(ctx: BuildContext) -> Controller:
   d = _delorean(ctx)
   return Controller("fallback", d.env_overrides + (("recovery_rule", "fallback"),), zero_policy, None,
@@ -312,6 +321,7 @@ register("specguard_pc", _specguard("pc"), "SpecGuard Proactive Control (train.p
          check=_specguard("pc"))
 register("delorean", _delorean, "DeLorean = SpecGuard without the recovery policy (ablation)")
 register("delorean_paper", _delorean_paper, "DeLorean with the paper's open-loop reconstruction (recon_mode paper)")
+register("delorean_oracle", _delorean_oracle, "DeLorean on the truth while the alarm is up (recon_mode oracle)")
 
 
 register("fallback", _fallback, "DeLorean + a rule-based, uncertainty-aware fallback (no learning)")

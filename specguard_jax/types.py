@@ -73,7 +73,7 @@ EKF_KERNELS = ("auto", "xla", "lanes")                  # EnvConfig.ekf_kernel (
 CONTROL_MODES = ("autopilot", "override", "reactive")   # envs.base.EnvConfig.control_mode
 DETECTORS = ("none", "residual", "oracle", "mixed")     # envs.base.EnvConfig.detector
 RESIDUAL_DETECTORS = ("residual", "mixed")               # detectors that run the residual detector every tick
-RECON_MODES = ("fused", "paper")                         # EnvConfig.recon_mode (estimation.recon.ReconConfig.mode)
+RECON_MODES = ("fused", "paper", "oracle")               # EnvConfig.recon_mode (estimation.recon.ReconConfig.mode)
 REWARDS = ("compliance", "capped", "binary", "survival")   # rewards.reward; survival: the FTC baseline's (baselines.ftc)
 VARIANTS = ("rc", "pc")                                  # ppo.config.TrainConfig.variant (RC / PC SpecGuard)
 TRAIN_DETECTORS = tuple(d for d in DETECTORS if d != "none")   # a training run's phase-2 and held-out detectors

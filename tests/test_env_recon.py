@@ -81,6 +81,31 @@ def test_mission_survives_gps_spoof_with_reconstruction(flight):
   assert np.all(np.asarray(final.info["episode"]["fence_breach"]) == 0)
 
 
+def test_oracle_reconstruction_is_the_truth_while_active():
+  """recon_mode 'oracle' (the bound delorean_oracle flies): while the reconstruction is active under an overt GPS
+  spoof, x'_t (the policy's observation) and the estimate the navigator flies on are the truth; before the alarm
+  they are the spoofed EKF's as in every mode."""
+  env = envs.make("drone", detector="oracle", reconstruction=True, recon_mode="oracle",
+                  mission=MissionConfig.drone(min_duration_s=50.0, max_duration_s=70.0))
+  sched = attacks.schedule_for("gps", [BIAS, 0.0, 0.0], onset=ONSET, duration=DURATION)
+  n = int(round((ONSET + 15.0) / env.dt))
+
+  @jax.jit
+  def run(key):
+    def body(s, _):
+      s = env.step(s, jnp.zeros(3))
+      sim = s.info["sim"]
+      return s, (s.info["time"], s.info["sim"]["recon"].active, sim["x_rec"][:3], sim["truth"].pos, sim["ekf"].pos)
+    return jax.lax.scan(body, env.reset_in_world(key, None, None, sched), None, length=n)[1]
+
+  t, active, x_pos, true_pos, ekf_pos = map(np.asarray, run(jax.random.PRNGKey(3)))
+  assert active[t > ONSET + 1.0].all() and not active[t < ONSET].any()
+  # the truth of the step's last tick, before its physics moved the vehicle one tick on (0.02 s, < 0.3 m)
+  np.testing.assert_allclose(x_pos[active], true_pos[active], atol=0.3)
+  # the autopilot's own EKF (which the oracle does not touch) is dragged by the spoof meanwhile
+  assert np.median(np.linalg.norm((ekf_pos - true_pos)[active][:, :2], axis=-1)) > 5.0
+
+
 def test_reconstruction_needs_detector_and_valid_model(tmp_path):
   with pytest.raises(ValueError, match="needs a detector"):
     envs.make("drone", reconstruction=True)

@@ -97,7 +97,8 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--hazard-lead", default="2,5", metavar="LO,HI", help="hazard campaign lead time range (s)")
   p.add_argument("--recon", choices=RECON_MODES,
                  help="state reconstruction mode of the controllers that reconstruct and do not fix one themselves "
-                      "(delorean, specguard_*; EnvConfig.recon_mode): fused (default) or paper")
+                      "(delorean, specguard_*; EnvConfig.recon_mode): fused (default), paper, or oracle (the truth: a "
+                      "bound)")
   p.add_argument("--max-s", type=float, default=400.0, help="episode cap (s)")
   p.add_argument("--mission-s", help="LO,HI mission duration bounds (s) instead of the vehicle preset (small runs)")
   p.add_argument("--mission", metavar="FILE",

@@ -33,6 +33,11 @@ components of x'_t (SENSOR_DEPS of the diagnosis mask) are the model's; the unco
 EKF's / the readings' (selective output as above), and are the model's inputs for them at the next step. The checkpoint lag must cover the detector's delay, or the
 checkpoint already holds the attack (`check_lag`). The model's uncertainty grows with the time since the checkpoint
 (ReconState.ckpt_age; `_paper_variances`), and is carried in the trusted estimate's covariance (`recon_std`).
+
+Mode "oracle" is no method but a bound: the fused mode runs underneath, and while it is active its outputs are the
+truth (`oracle_outputs`: the true position, velocity and attitude, the sensors' readings without the attack). The
+unchanged autopilot flown on it shows what perfect reconstruction would give: what is left is the detector's delay,
+what happens before the alarm and after the hand-back, and the control authority.
 """
 
 from __future__ import annotations
@@ -104,9 +109,10 @@ class ReconConfig:
   """window: checkpoint ring size (ticks).  lag: checkpoint age used when the alarm rises (ticks; >= the detector's
   delay, < window).  n_controls: 4 (drone rotor thrusts) or 2 (rover throttle, steer).  ekf: the shadow EKF's
   EKFConfig (the vehicle's, e.g. EKFConfig.drone()); None -> EKFConfig.drone().
-  mode: "fused" (closed-loop shadow EKF on the uncompromised sensors) or "paper" (open-loop model roll-out from the
-  checkpoint; module docstring). The other fields below are the fused mode's, except window / lag / n_controls /
-  ekf / ground_drive / sticky_* (both) and paper_* (the paper mode's uncertainty model, `_paper_variances`)."""
+  mode: "fused" (closed-loop shadow EKF on the uncompromised sensors), "paper" (open-loop model roll-out from the
+  checkpoint) or "oracle" (the truth while active, an upper bound: `oracle_outputs`); module docstring. The other
+  fields below are the fused mode's (oracle's too), except window / lag / n_controls / ekf / ground_drive / sticky_*
+  (all modes) and paper_* (the paper mode's uncertainty model, `_paper_variances`)."""
   window: int = 50
   lag: int = 10
   n_controls: int = 4
@@ -220,6 +226,17 @@ def input_vector(ekf_state, readings) -> jax.Array:
 def true_input_vector(truth) -> jax.Array:
   """x'_t [15] of a TrueState (ground truth for scoring)."""
   return jnp.concatenate([truth.pos, truth.vel, truth.acc, math3d.quat_to_euler(truth.quat), truth.ang_vel])
+
+
+def oracle_outputs(active, trusted, trusted_readings, x_rec, truth, clean_readings):
+  """Mode "oracle" (module docstring): recon_tick's (trusted EKFState, trusted SensorReadings, x_reconstructed [15])
+  with, while `active` ([] bool, ReconState.active), the true position, velocity and attitude in the estimate (its
+  bias states kept), the readings without the attack (`clean_readings`: the sensors' noisy readings before the
+  attack entered) and x'_t of the truth (`true_input_vector`)."""
+  perfect = trusted.replace(pos=truth.pos, vel=truth.vel, quat=truth.quat)
+  pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(active, x, y), a, b)
+  return (pick(perfect, trusted), pick(clean_readings, trusted_readings),
+          jnp.where(active, true_input_vector(truth), x_rec))
 
 
 def _entry(ekf_state, readings):
