@@ -347,6 +347,9 @@ def markdown(rep) -> str:
        "- No protection is its own twin, so its SVR is 100 % by construction: wherever a table quotes an SVR for "
        "no protection it is its share of missions under attack with any violation (column 'any viol.' for every "
        "controller).", ""]
+  if meta.get("merged_from"):   # evaluate.py --merge: the parts' own commands
+    L[-1:-1] = [f"- merged from {len(meta['merged_from'])} evaluations of the same missions: " + "; ".join(
+        f"`{m['command']}` ({m['date']}, {', '.join(m['controllers'])})" for m in meta["merged_from"])]
   if meta.get("recon_modes"):
     L[-1:-1] = ["- state reconstruction (EnvConfig.recon_mode) per controller: " + ", ".join(
         f"{k} {v or 'none'}" for k, v in meta["recon_modes"].items())]

@@ -119,7 +119,7 @@ def test_designed_ramp_rate():
 
 
 def _plan(*argv):
-  return cli.plan(cli._parser().parse_args(list(argv)))
+  return cli.plan(cli.parse_args(list(argv)))
 
 
 def test_hard_suite_plan(monkeypatch):

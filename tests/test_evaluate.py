@@ -138,3 +138,76 @@ def _cli(*args):
 def test_bad_flags_one_line(args, needle):
   rc, err = _cli(*args)
   assert rc == 2 and len(err.splitlines()) == 1 and needle in err, err
+
+
+def _part(src, dst, keep):
+  """A copy of the evaluation in `src` holding only the controllers in `keep` (report.json and records), as if an
+  evaluate.py job had flown only those."""
+  import shutil
+  with open(os.path.join(src, "report.json")) as f:
+    rep = json.load(f)
+  os.makedirs(os.path.join(dst, "records"))
+  for g, grp in rep["groups"].items():
+    grp["controllers"] = {c: v for c, v in grp["controllers"].items() if c in keep}
+    for c in grp["controllers"]:
+      shutil.copy(os.path.join(src, "records", f"{g}__{c}.npz"), os.path.join(dst, "records"))
+  with open(os.path.join(dst, "report.json"), "w") as f:
+    json.dump(rep, f)
+  return str(dst)
+
+
+def test_merge_of_parts_equals_the_whole(report, tmp_path):
+  """evaluate.py --merge: two parts (no protection alone; no protection + the copy) give the report of the one job
+  that flew both: the same metrics and paired tests; parts of other missions or a twin that flew differently are
+  refused in one line."""
+  out, rep = report
+  a = _part(out, tmp_path / "a", {"no_protection"})
+  b = _part(out, tmp_path / "b", {"no_protection", "autopilot_copy"})
+  merged = str(tmp_path / "merged")
+  assert evaluate_cli.main(["--merge", a, b, "--out", merged, "--no-figures"]) == 0
+  with open(os.path.join(merged, "report.json")) as f:
+    m = json.load(f)
+  for g in ("main", "false_alarm"):
+    assert list(m["groups"][g]["controllers"]) == ["no_protection", "autopilot_copy"]
+    assert m["groups"][g]["metrics"] == rep["groups"][g]["metrics"]
+    assert m["groups"][g]["paired"] == rep["groups"][g]["paired"]
+  assert m["totals"]["missions"] == rep["totals"]["missions"]
+  assert [p["controllers"] for p in m["meta"]["merged_from"]] == [["no_protection"],
+                                                                   ["autopilot_copy", "no_protection"]]
+  assert "merged from 2 evaluations" in open(os.path.join(merged, "report.md")).read()
+  # a part of other missions (another seed) is refused
+  c = _part(out, tmp_path / "c", {"no_protection"})
+  with open(os.path.join(c, "report.json")) as f:
+    r = json.load(f)
+  r["meta"]["seed"] += 1
+  with open(os.path.join(c, "report.json"), "w") as f:
+    json.dump(r, f)
+  rc, err = _cli("--merge", c, b, "--out", str(tmp_path / "m2"))
+  assert rc == 2 and len(err.splitlines()) == 1 and "differ in seed" in err, err
+  # the twin flown differently in two parts (pairing broken) is refused
+  d = _part(out, tmp_path / "d", {"no_protection"})
+  path = os.path.join(d, "records", "main__no_protection.npz")
+  z = dict(np.load(path))
+  z["violated"] = ~z["violated"]
+  np.savez(path, **z)
+  rc, err = _cli("--merge", d, b, "--out", str(tmp_path / "m3"))
+  assert rc == 2 and "main/no_protection flew differently" in err, err
+  rc, err = _cli("--merge", a, b, "--out", str(tmp_path / "m4"), "--seed", "3")
+  assert rc == 2 and "--merge takes only --out" in err, err
+
+
+def test_tagged_runs_fly_beside_the_others(tmp_path):
+  """--runs specguard_rc_<tag>=DIR (another seed) is flown in the main group under its role's name, and with the
+  oracle's forced alarm in the false-alarm group; an unknown role is a one-line error."""
+  for name, variant in (("rc", "rc"), ("s1", "rc")):
+    (tmp_path / name).mkdir()
+    (tmp_path / name / "config.json").write_text(json.dumps({"variant": variant}))
+  args = evaluate_cli.parse_args(["--run", str(tmp_path / "rc"), "--runs", f"specguard_rc_s1={tmp_path}/s1",
+                                  "--controllers", "no_protection,specguard_rc", "--false-alarms", "gps"])
+  p = evaluate_cli.plan(args)
+  main = p["groups"]["main"]["controllers"]
+  assert main[-1] == ("run", "specguard_rc_s1", f"{tmp_path}/s1", ()) and "specguard_rc" in main
+  fa = p["groups"]["false_alarm"]["controllers"]
+  assert fa[-1] == ("run", "specguard_rc_s1", f"{tmp_path}/s1", evaluate_cli.FORCED_ALARM)
+  rc, err = _cli("--runs", f"seed1={tmp_path}/s1")
+  assert rc == 2 and "unknown run role 'seed1'" in err, err

@@ -32,7 +32,12 @@ report.json's 'redteam' section logs each mission's chosen sensor, onset and dur
 
 --suite hard flies the campaigns benchmark: attack-free + every campaign (or --campaigns), on all worlds (or
 --worlds), with no protection, DeLorean, the fallback and the baselines that are registered, and SpecGuard when --run
-is given; report.md opens with SVR, critical-spec violations, RSR and MD per controller and campaign.
+is given; report.md opens with SVR, critical-spec violations, RSR and MD per controller and campaign. More SpecGuard
+runs fly beside the others under their role's name: --runs specguard_rc_s1=DIR specguard_rc_s2=DIR (e.g. seeds).
+
+--merge DIR DIR ... --out OUT makes one report of evaluations run as parts (disjoint controllers, the same seed,
+missions, worlds and settings, each with no protection): paired tests across every pair of controllers, as if one job
+had flown them (specguard_jax.report_merge; parts that did not fly the same missions are refused).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ import dataclasses
 import datetime
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -50,6 +56,9 @@ import warnings
 from specguard_jax.types import RECON_MODES, VEHICLES
 
 RUN_NAMES = ("specguard_rc", "specguard_pc", "binary", "capped", "specguard_no_recon", "suburban", "urban", "rover")
+# More SpecGuard runs flown beside the others in the main group, under the role's name (e.g. specguard_rc_s1 for a
+# second seed): specguard_rc_<tag> / specguard_pc_<tag>, tag of lowercase letters, digits and '_'.
+TAGGED_RUN = re.compile(r"specguard_(rc|pc)_[a-z0-9_]+")
 DEFAULT_CONTROLLERS = ("no_protection", "specguard_rc", "specguard_pc", "delorean", "specguard_no_recon")
 # Registered controllers the hard suite leaves out (ablations that need their own training runs).
 HARD_SKIP = ("specguard_no_recon", "specguard_binary", "specguard_capped")
@@ -66,11 +75,17 @@ class _Parser(argparse.ArgumentParser):
     sys.exit(2)
 
 
+def parse_args(argv=None) -> argparse.Namespace:
+  """evaluate.py's flags (argv None: sys.argv); a bad flag exits 2 with one line."""
+  return _parser().parse_args(argv)
+
+
 def _parser() -> argparse.ArgumentParser:
   p = _Parser(description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--run", help="train.py run dir of the SpecGuard policy under evaluation")
   p.add_argument("--runs", nargs="*", default=[], metavar="NAME=DIR",
-                 help=f"extra runs by role: {', '.join(RUN_NAMES)}")
+                 help=f"extra runs by role: {', '.join(RUN_NAMES)}; or specguard_rc_<tag> / specguard_pc_<tag> "
+                      "(e.g. specguard_rc_s1=runs/rc_s1: more seeds, flown beside the others under that name)")
   p.add_argument("--out", help="output dir (default <run>/eval, or runs/eval)")
   p.add_argument("--missions", type=int, help="missions per setting (default: GPU 1000, CPU 8)")
   p.add_argument("--controllers", help="comma-separated controller names (default: suite -> all available)")
@@ -114,6 +129,9 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--traj", type=int, default=2, help="missions per setting whose trajectories are recorded")
   p.add_argument("--train-budget", choices=("ci", "full"), help="baseline training size (default: GPU full, CPU ci)")
   p.add_argument("--no-figures", action="store_true")
+  p.add_argument("--merge", nargs="+", metavar="DIR",
+                 help="merge finished evaluations (report.json + records/) of the same missions into one report in "
+                      "--out; no rollout is flown")
   p.add_argument("--no-progress", action="store_true")
   p.add_argument("--compile-cache", metavar="DIR|off",
                  help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
@@ -176,8 +194,8 @@ def _forced_alarm(c):
   """A main-group controller entry as a variant with the oracle detector (the false-alarm group)."""
   if isinstance(c, str):
     return ("variant", c, c, FORCED_ALARM)
-  if c[0] == "variant":
-    return ("variant", c[1], c[2], tuple(c[3]) + FORCED_ALARM)
+  if c[0] in ("variant", "run"):
+    return c[:3] + (tuple(c[3]) + FORCED_ALARM,)
   return c
 
 
@@ -194,8 +212,9 @@ def plan(args) -> dict:
     name, sep, d = item.partition("=")
     if not sep or not d:
       raise ValueError(f"--runs takes NAME=DIR, got {item!r}")
-    if name not in RUN_NAMES:
-      raise ValueError(f"unknown run role {name!r} in --runs; choose from {', '.join(RUN_NAMES)}")
+    if name not in RUN_NAMES and not TAGGED_RUN.fullmatch(name):
+      raise ValueError(f"unknown run role {name!r} in --runs; choose from {', '.join(RUN_NAMES)}, or "
+                       "specguard_rc_<tag> / specguard_pc_<tag>")
     if not os.path.isfile(os.path.join(d, "config.json")):
       raise ValueError(f"--runs {name}: {d} is not a train.py run dir (no config.json)")
     runs[name] = d
@@ -291,6 +310,7 @@ def plan(args) -> dict:
   else:
     main_settings = settings_for(sensors, multi=bool(args.suite)) + camp_settings
   names = [("variant", c) + variants[c] if c in variants else c for c in names]
+  names += [("run", role, d, ()) for role, d in runs.items() if TAGGED_RUN.fullmatch(role)]
   groups = {"main": {"vehicle": vehicle, "worlds": worlds, "settings": main_settings, "controllers": names,
                      "ctx": ctx, "designed": single if "designed" in campaigns else ()}}
   skipped = {}
@@ -515,7 +535,8 @@ def check_user_files(args, vehicles) -> None:
 def requested_not_run(args, not_run: dict) -> str | None:
   """The error when a controller asked for by name (--controllers, or a --runs run flown in its own group) could not
   be built after all (its builder raised), else None."""
-  asked = set(_csv(args.controllers)) | {"specguard"}
+  roles = {x.partition("=")[0] for x in args.runs or ()}
+  asked = set(_csv(args.controllers)) | {"specguard"} | {r for r in roles if TAGGED_RUN.fullmatch(r)}
   for key, why in not_run.items():
     if key.split("/", 1)[1] in asked:
       return f"controller {key} cannot run: {why}"
@@ -532,8 +553,41 @@ def _backend() -> str:
   return jax.default_backend()
 
 
+MERGE_FLAGS = ("merge", "out", "no_figures", "no_progress", "compile_cache")
+"""The flags --merge takes; the others choose what to fly, which the parts fixed."""
+
+
+def merge_main(args, argv) -> int:
+  """evaluate.py --merge DIR ... --out OUT: report.build over the parts' records (report_merge.merge)."""
+  from specguard_jax import report as R
+  from specguard_jax import report_merge as RM
+  from specguard_jax.cli import preflight
+  defaults = parse_args([])
+  given = [k for k, v in vars(args).items() if k not in MERGE_FLAGS and v != getattr(defaults, k)]
+  try:
+    if given:
+      raise ValueError(f"--merge takes only --out and --no-figures; the parts fixed --{given[0].replace('_', '-')}")
+    if not args.out:
+      raise ValueError("--merge needs --out, the merged report's directory")
+    if os.path.abspath(args.out) in {os.path.abspath(d) for d in args.merge}:
+      raise ValueError(f"--merge: --out {args.out} is one of the parts; write the merged report elsewhere")
+    preflight.check_output_dir(args.out, "--out")
+    results, records, meta = RM.merge([RM.load_part(d) for d in args.merge],
+                                      "python evaluate.py " + " ".join(argv if argv is not None else sys.argv[1:]))
+  except ValueError as e:
+    return _fail(e)
+  report = R.build(results, records, meta)
+  report["wall_s"] = meta["eval_wall_s"]
+  R.write(args.out, report, records, {}, figures=not args.no_figures)
+  print(f"merged {len(args.merge)} evaluations: {report['totals']['missions']} missions, "
+        f"{len(records)} rollouts; report: {os.path.join(args.out, 'report.md')}")
+  return 0
+
+
 def main(argv=None) -> int:
-  args = _parser().parse_args(argv)
+  args = parse_args(argv)
+  if args.merge:
+    return merge_main(args, argv)
   t_start = time.time()
   # the code and the moment this evaluation started (a long one may outlive its checkout's HEAD)
   commit, started = _git_commit(), datetime.datetime.now().isoformat(timespec="seconds")
@@ -572,7 +626,7 @@ def main(argv=None) -> int:
     results["groups"][gname] = {"vehicle": g["vehicle"], "worlds": list(g["worlds"]),
                                 "settings": [s.name for s in g["settings"]], "controllers": {}}
     for c in g["controllers"]:
-      label = c if isinstance(c, str) else (c[1] if c[0] == "variant" else c[0])
+      label = c if isinstance(c, str) else (c[1] if c[0] in ("variant", "run") else c[0])
       bar.show(f"{gname}: building {label}")
       try:
         if isinstance(c, str):
@@ -582,7 +636,14 @@ def main(argv=None) -> int:
           over = dict(ctrl.env_overrides, **dict(c[3]))
           ctrl = dataclasses.replace(ctrl, name=c[1], env_overrides=tuple(over.items()),
                                      description=f"{ctrl.description} ({', '.join(f'{k}={v}' for k, v in c[3])})")
-        else:
+        elif c[0] == "run":   # ("run", role, dir, extra env overrides): a tagged --runs run, e.g. another seed
+          cfg = C.load_run_config(c[2])
+          if not c[1].startswith(f"specguard_{cfg.variant}_") or cfg.vehicle != g["vehicle"]:
+            raise C.NotAvailable(f"--runs {c[1]}: {c[2]} is a {cfg.vehicle} SpecGuard-{cfg.variant.upper()} run")
+          ctrl = C.specguard_from_run(c[1], c[2])
+          if c[3]:
+            ctrl = dataclasses.replace(ctrl, env_overrides=tuple(dict(ctrl.env_overrides, **dict(c[3])).items()))
+        else:   # ("specguard", dir): the run of an unseen-world or rover group
           cfg = C.load_run_config(c[1])
           ctrl = C.specguard_from_run(f"specguard_{cfg.variant}", c[1])
           if cfg.vehicle != g["vehicle"]:
