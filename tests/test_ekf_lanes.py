@@ -179,8 +179,10 @@ def test_an_outer_vmap_joins_the_kernels_batch(monkeypatch):
   stacked = [jnp.stack(x) for x in zip(*members)]
   stacked[0] = ekf_lib.pack_p(stacked[0])
   fmh = float(cfg.flow_min_height)
-  # jitted: the kernel's body compiles once instead of running op by op (the stand-in is plain JAX)
-  out = jax.jit(jax.vmap(lambda *a: ekf_lanes.prep_tick(spec, resets, *a, flow_min_height=fmh)))(*stacked)
+  # op by op (prep_tick's jit off too): compiled, the body's ~8,600 ops on [B] vectors take XLA over a minute; the
+  # vmap still goes through the kernel call's custom_vmap rule
+  with jax.disable_jit():
+    out = jax.vmap(lambda *a: ekf_lanes.prep_tick(spec, resets, *a, flow_min_height=fmh))(*stacked)
   assert seen[-1] == (48, ekf_lib.N_PACKED)    # (custom_vmap first traces the unbatched call: [16, 121])
   # the reference on the members' vehicles side by side (one batch of 48), split back per member
   ref = _prep_xla(cfg, (), [jnp.concatenate(x) for x in zip(*members)])[:4]
