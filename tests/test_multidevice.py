@@ -290,7 +290,8 @@ def test_two_processes_with_jax_distributed_train_like_one(runs):
 # The env step with the lanes EKF kernel, split over 2 devices by shard_map (iteration.group_step), against the XLA
 # env's plain vmap on one device (the kernel's one-device batch is read from a trace: its compile would double the
 # test's time). The kernel needs a Hopper GPU, so its call is stood in for by its plain-JAX body (the same
-# arithmetic); what this checks is the batch each device hands the kernel and the packed layout of P on every device.
+# arithmetic) run on the host by a pure_callback; what this checks is the batch each device hands the kernel and the
+# packed layout of P on every device.
 KERNEL = textwrap.dedent("""
   import json
   import jax, jax.numpy as jnp, numpy as np
@@ -307,12 +308,17 @@ KERNEL = textwrap.dedent("""
 
   def fake_lanes_call(P, aux, n_rows, n_out, body, in_place):   # the kernel's body on [B] vectors, no TMA
     seen.append(list(P.shape))
-    mem, p_out = dict(enumerate(aux)), dict(enumerate(P.T))
-    def p_store(i, j, v):
-      p_out[ekf_lib.TRI_INDEX[(i, j)]] = v
-    body(lambda i, j: P[:, ekf_lib.TRI_INDEX[(i, j)]], p_store, mem.__getitem__, mem.__setitem__)
-    return (jnp.stack([p_out[k] for k in range(ekf_lib.N_PACKED)], axis=1),
-            jnp.stack([jnp.broadcast_to(mem[k], (P.shape[0],)) for k in range(n_out)]))
+    def run(P, aux):
+      mem, p_out = dict(enumerate(aux)), dict(enumerate(P.T))
+      def p_store(i, j, v):
+        p_out[ekf_lib.TRI_INDEX[(i, j)]] = v
+      body(lambda i, j: P[:, ekf_lib.TRI_INDEX[(i, j)]], p_store, mem.__getitem__, mem.__setitem__)
+      return (jnp.stack([p_out[k] for k in range(ekf_lib.N_PACKED)], axis=1),
+              jnp.stack([jnp.broadcast_to(mem[k], (P.shape[0],)) for k in range(n_out)]))
+    # Run op by op on the host, opaque to XLA as the kernel's custom call is: compiled inline, the body's ~8,600 ops
+    # on [B] vectors were most of the sharded program's compile.
+    return jax.pure_callback(lambda P, aux: jax.device_get(run(jnp.asarray(P), jnp.asarray(aux))),
+                             jax.eval_shape(run, P, aux), P, aux)
 
   ekf_lanes._lanes_call = fake_lanes_call
   batched = AutoReset(VmapWrapper(env), refresh_in_step=False)
@@ -348,7 +354,10 @@ KERNEL = textwrap.dedent("""
 
 
 def test_lanes_ekf_kernel_steps_the_envs_per_device():
-  r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], _env(2)), timeout=900)[0])
+  # NPROC sizes XLA:CPU's thread pool (default: the core count): each device's callback holds a thread of it while
+  # the body's eager ops run on another, so 2 devices need more than the 2 threads of a 2-core machine.
+  env = dict(_env(2), NPROC=str(max(4, os.cpu_count() or 1)))
+  r = _result(*_wait(_start([[sys.executable, "-c", KERNEL]], env), timeout=900)[0])
   assert r["kernel_batch"] == [[6, 121], [3, 121]]     # one device: all 6 envs in one call; split: 3 per device
   assert r["shard_map"]                                # the step calls the kernel inside a per-device split
   assert not r["plain_shard_map"]                      # without the kernel no shard_map (it crashes XLA on several GPUs)
