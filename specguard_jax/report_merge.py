@@ -84,7 +84,8 @@ def merge(parts: list[dict], command: str) -> tuple[dict, dict, dict]:
         if (g, c) in records:
           if not _same_records(records[(g, c)], rec):
             raise ValueError(f"--merge: {g}/{c} flew differently in {p['dir']} and {owner[(g, c)]}: the parts did "
-                             "not fly the same missions")
+                             "not fly the same missions (on a GPU, fly every part with XLA_FLAGS="
+                             "--xla_gpu_deterministic_ops=true: cold compiles may round differently)")
           continue
         records[(g, c)], owner[(g, c)] = rec, p["dir"]
         have["controllers"][c] = info
