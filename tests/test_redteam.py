@@ -21,7 +21,9 @@ from specguard_jax.ppo.config import PPOConfig
 from specguard_jax.types import SENSOR_NAMES
 
 SENSORS = ("gps", "gyro")
-BASE = {"worlds": ("urban_park",), "max_episode_s": 60.0,
+# The env overrides evaluate.py passes for CLI_ARGS below (mission_file and params_file: its defaults), so its
+# evaluation finds this module's env (evaluation.make_env caches it per overrides) and so its compiled rollout.
+BASE = {"worlds": ("urban_park",), "max_episode_s": 60.0, "mission_file": "", "params_file": "",
         "mission": MissionConfig.drone(min_duration_s=30.0, max_duration_s=40.0)}
 CFG = RT.RedteamConfig(num_envs=4, unroll_length=8, steps=64, sensors=SENSORS, max_duration_s=20.0,
                        violation_penalty=1.0, ppo=PPOConfig(ent_coef=0.01, num_minibatches=4, update_epochs=2))
