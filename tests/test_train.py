@@ -658,6 +658,9 @@ def test_sweep_compiles_phase_2_ahead_once(tmp_path):
   a, b = (jax.tree.leaves(m["sg_state"].params) for m in sw)
   assert all(np.all(np.isfinite(x)) for x in a + b)
   assert any(not np.array_equal(x, y) for x, y in zip(a, b))   # two seeds, two policies
+  # export=False skips only the ONNX: each member's policy is saved for evaluate.py
+  for m in ("a", "b"):
+    assert os.path.isfile(tmp_path / m / "policy.msgpack") and not os.path.exists(tmp_path / m / "policy.onnx")
 
 
 EXIT_MID_COMPILE = """

@@ -176,7 +176,9 @@ def _parser() -> _Parser:
   ap.add_argument("--coordinator-timeout", type=float, default=300.0, metavar="S",
                   help="multi-host: give up (exit 2) when the processes have not all joined after S seconds")
   ap.add_argument("--no-progress", action="store_true")
-  ap.add_argument("--no-export", action="store_true", help="skip the ONNX export")
+  ap.add_argument("--no-export", action="store_true",
+                  help="skip the ONNX export (policy.msgpack and policy_config.json, which evaluate.py loads, are "
+                       "still written)")
   ap.add_argument("--compile-ahead", action=argparse.BooleanOptionalAction, default=None,
                   help="compile phase 2 and the held-out evaluation on background threads while phase 1 compiles "
                        "and trains (default: on unless the backend is the CPU)")

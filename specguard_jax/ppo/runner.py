@@ -381,8 +381,9 @@ def train(cfg: TrainConfig, run_dir: str, *, resume: bool = False, progress: boo
     if not main:
       distributed.barrier("specguard_train_end")   # wait for process 0's export and evaluation
       return summary
-    if export:
-      summary["export"] = export_policy(cfg, run_dir, sg_state)
+    ex = export_policy(cfg, run_dir, sg_state, onnx=export)   # the policy always: evaluate.py loads it
+    if ex:
+      summary["export"] = ex
     if cfg.eval_missions > 0:
       te = time.time()
       if not compile_ahead or "heldout" in ahead.pending():
@@ -420,13 +421,16 @@ def _compile_ahead(ahead, cfg, mesh, phases, start: int, keys, main: bool) -> No
     ahead.submit("heldout", it.precompile_heldout, cfg, sg, cfg.eval_missions)
 
 
-def export_policy(cfg: TrainConfig, run_dir: str, sg_state) -> dict:
-  """Save the SpecGuard policy (msgpack + config) and its ONNX with normalisation folded in; returns parity/latency."""
+def export_policy(cfg: TrainConfig, run_dir: str, sg_state, onnx: bool = True) -> dict:
+  """Save the SpecGuard policy (msgpack + config: what evaluate.py loads) and, with onnx, its ONNX with normalisation
+  folded in; returns the ONNX parity / latency ({} without it)."""
   policy = it.sg_policy(cfg)
   params = jax.device_get(sg_state.params["policy"])
   norm = {"mean": np.asarray(sg_state.normalizer.mean), "std": np.asarray(sg_state.normalizer.std)}
   layout = obs_lib.describe(cfg.env.obs_layout, cfg.env.proximity_sectors, cfg.env.obs_history)
   export.save_policy(run_dir, policy, params, norm, cfg.action_scales, cfg.obs_clip, obs_layout=layout)
+  if not onnx:
+    return {}
   # The JAX reference must use exact float32 matmuls (GPUs default to TF32, ~1e-3 off the ONNX Runtime CPU result).
   with jax.default_matmul_precision("float32"):
     res = export.export_onnx(os.path.join(run_dir, "policy.onnx"), policy, params, norm, cfg.action_scales,
@@ -567,8 +571,9 @@ def train_sweep(cfgs: list, names: list, out: str, *, progress: bool = True, exp
               "final_train_metrics": per_phase[s], "stopped_early": stopped,
               "backend": jax.default_backend(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "date": time.strftime("%Y-%m-%d")}
-      if main and export:
-        summ["export"] = export_policy(c, d, sg_s)
+      ex = export_policy(c, d, sg_s, onnx=export) if main else {}
+      if ex:
+        summ["export"] = ex
       if main and c.eval_missions > 0:
         if s == 0:   # one program for every member
           bar.compiling("the held-out evaluation")
