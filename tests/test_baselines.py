@@ -4,7 +4,8 @@ generalises; PID-Piper's FFC and the state DAE beat trivial predictors on held-o
 IMU denoiser and the FTC envelope do what they say;
 the survival reward; corrupt caches are one-line errors.
 FTC-RL trains with the PPO trainer (~3 min on 2 CPU cores): set BASELINES_FTC=1 to run its build-and-fly test.
-The no-worse-than-no-protection rule on attacks the EKF rejects: tests/test_baselines_no_worse.py."""
+The no-worse-than-no-protection rule on attacks the EKF rejects:
+test_no_baseline_worse_than_no_protection_on_attacks_the_ekf_rejects below."""
 
 import os
 
