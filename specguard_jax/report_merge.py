@@ -61,8 +61,8 @@ def merge(parts: list[dict], command: str) -> tuple[dict, dict, dict]:
   first = parts[0]
   for p in parts[1:]:
     for k in SAME_META:
-      if p["report"]["meta"].get(k) != first["report"]["meta"].get(k):
-        a, b = p["report"]["meta"].get(k), first["report"]["meta"].get(k)
+      a, b = p["report"]["meta"].get(k), first["report"]["meta"].get(k)
+      if a != b:
         raise ValueError(f"--merge: {p['dir']} and {first['dir']} differ in {k} ({a!r} vs {b!r}): not the same "
                          "missions")
   results = {"groups": {}, "not_run": {}, "skipped_experiments": {}, "rollouts": [], "compile_wall_s": 0.0}
