@@ -205,11 +205,16 @@ def mcnemar(a, b) -> dict:
   missions): {'b': a and not b, 'c': b and not a, 'n': pairs, 'p': two-sided exact p-value}. Conditional on the
   b + c discordant pairs, b ~ Bin(b + c, 1/2) under the null of equal rates; p = 1 with no discordant pair.
   scipy comes with jax (one of its requirements; mean_ci uses it too)."""
-  from scipy import stats
   a, b_ = np.asarray(a, bool), np.asarray(b, bool)
-  nb, nc = int(np.sum(a & ~b_)), int(np.sum(~a & b_))
-  p = float(stats.binomtest(nb, nb + nc, 0.5).pvalue) if nb + nc else 1.0
-  return {"b": nb, "c": nc, "n": int(a.size), "p": p}
+  return mcnemar_counts(int(np.sum(a & ~b_)), int(np.sum(~a & b_)), int(a.size))
+
+
+def mcnemar_counts(b: int, c: int, n: int) -> dict:
+  """`mcnemar`'s dict from its counts: b pairs where only A has the event, c where only B has it, n pairs. Summing
+  b and c over disjoint sets of missions (the settings of a campaign) gives the test of the pooled missions."""
+  from scipy import stats
+  p = float(stats.binomtest(b, b + c, 0.5).pvalue) if b + c else 1.0
+  return {"b": int(b), "c": int(c), "n": int(n), "p": p}
 
 
 def paired(ra, rb, twin=None, *, critical) -> dict:

@@ -264,6 +264,7 @@ def experiments(rep) -> dict:
                      for c in ctrls}
   ex["shape"] = shape_statements(ex, sg)
   ex["hard"] = hard_table(rep)
+  ex["hard_goal"] = hard_goal(rep, ex["hard"])
   return ex
 
 
@@ -357,6 +358,7 @@ def markdown(rep) -> str:
     L[-1:-1] = ["- rule under the alarm (EnvConfig.recovery_rule), where not none: " + ", ".join(
         f"{k} {v}" for k, v in meta["recovery_rules"].items())]
   L += hard_markdown(ex.get("hard"))
+  L += hard_goal_markdown(ex.get("hard_goal"))
   L += violation_timing_markdown(rep)
   L += blind_markdown(rep)
   L += redteam_markdown(rep.get("redteam"))
@@ -454,6 +456,72 @@ def markdown(rep) -> str:
   L += false_alarm_markdown(rep)
   L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
   return "\n".join(L)
+
+
+# The hard suite's goal for a SpecGuard policy: fewer SVR events and fewer critical-spec violations than each
+# reference with a paired p below GOAL_ALPHA, on every attacked campaign, while its RSR is no lower.
+GOAL_REFERENCES = ("delorean", "fallback")
+GOAL_ALPHA = 0.01
+
+
+def hard_goal(rep, table, group="main") -> list:
+  """Per SpecGuard controller, reference (GOAL_REFERENCES present) and attacked campaign of `table` (hard_table; not
+  attack_free, not redteam, whose attacks differ per controller): McNemar on the campaign's missions pooled (the
+  settings' discordant pairs summed, metrics.mcnemar_counts) for the SVR event and critical violations, both RSRs,
+  and whether the SpecGuard controller beats the reference there: fewer of both (p < GOAL_ALPHA) and an RSR whose
+  95 % interval reaches the reference's. [] without a SpecGuard controller, a reference or the paired tests."""
+  g = rep["groups"].get(group, {})
+  paired, ctrls = g.get("paired") or {}, list(g.get("metrics") or {})
+  camps = [k for k in (table or {}) if k not in ("attack_free", "redteam")]
+  out = []
+  for sg in (c for c in ctrls if c.startswith("specguard")):
+    for ref in (r for r in GOAL_REFERENCES if r in ctrls):
+      for camp in camps:
+        sums = {"svr": [0, 0, 0], "critical": [0, 0, 0]}
+        for setting, tests in paired.items():
+          if setting.split("/")[0] != camp:
+            continue
+          t, flip = (tests[f"{sg} vs {ref}"], False) if f"{sg} vs {ref}" in tests else (tests.get(f"{ref} vs {sg}"), True)
+          for k, acc in sums.items():
+            if t and k in t:
+              acc[0] += t[k]["c" if flip else "b"]
+              acc[1] += t[k]["b" if flip else "c"]
+              acc[2] += t[k]["n"]
+        if not sums["svr"][2]:
+          continue
+        tests = {k: M.mcnemar_counts(*v) for k, v in sums.items()}
+        me, them = table[camp][sg]["rsr"], table[camp][ref]["rsr"]
+        fewer = all(t["b"] < t["c"] and t["p"] < GOAL_ALPHA for t in tests.values())
+        rsr_ok = bool(me and them and me["ci"][1] >= them["value"])
+        out.append({"controller": sg, "reference": ref, "campaign": camp, **tests,
+                    "rsr": [me and me["value"], them and them["value"]], "beats": bool(fewer and rsr_ok)})
+  return out
+
+
+def hard_goal_markdown(rows) -> list:
+  """Lines of the goal's table and one plain sentence per SpecGuard controller (`hard_goal`); [] without rows."""
+  if not rows:
+    return []
+  L = ["## The goal: does SpecGuard beat DeLorean and the fallback?", "",
+       f"A SpecGuard controller beats a reference on a campaign when it has fewer SVR events (over the missions no "
+       f"protection violated) and fewer critical-spec violations, each by McNemar's exact test on the campaign's "
+       f"missions with p < {GOAL_ALPHA}, and its RSR's 95 % interval reaches the reference's RSR. Discordant pairs: "
+       f"missions where only SpecGuard violated vs only the reference.", "",
+       "| controller | reference | campaign | SVR: discordant, p | critical: discordant, p | RSR % | beats |",
+       "|---|---|---|---|---|---|---|"]
+  pct = lambda x: "n/a" if x is None else f"{100 * x:.1f}"  # noqa: E731
+  for r in rows:
+    L.append(f"| {r['controller']} | {r['reference']} | {r['campaign']} | {r['svr']['b']} vs {r['svr']['c']}, "
+             f"{r['svr']['p']:.2g} | {r['critical']['b']} vs {r['critical']['c']}, {r['critical']['p']:.2g} | "
+             f"{pct(r['rsr'][0])} vs {pct(r['rsr'][1])} | {'yes' if r['beats'] else '**no**'} |")
+  L.append("")
+  for sg in dict.fromkeys(r["controller"] for r in rows):
+    mine = [r for r in rows if r["controller"] == sg]
+    won = sum(r["beats"] for r in mine)
+    verdict = "beats" if won == len(mine) else "does NOT beat"
+    L.append(f"- {sg} {verdict} {' and '.join(dict.fromkeys(r['reference'] for r in mine))} on every attacked "
+             f"campaign: it wins {won} of {len(mine)} comparisons.")
+  return L + [""]
 
 
 def hard_markdown(table) -> list:
