@@ -481,7 +481,8 @@ def hard_goal(rep, table, group="main") -> list:
         for setting, tests in paired.items():
           if setting.split("/")[0] != camp:
             continue
-          t, flip = (tests[f"{sg} vs {ref}"], False) if f"{sg} vs {ref}" in tests else (tests.get(f"{ref} vs {sg}"), True)
+          flip = f"{sg} vs {ref}" not in tests     # the pair named the other way round: swap b and c
+          t = tests.get(f"{ref} vs {sg}" if flip else f"{sg} vs {ref}")
           for k, acc in sums.items():
             if t and k in t:
               acc[0] += t[k]["c" if flip else "b"]
