@@ -220,14 +220,22 @@ def obs_overrides(run_dir: str) -> tuple:
           + ((("obs_history", history),) if history > 1 else ()))
 
 
+def deployment_overrides(cfg, run_dir: str, *, reconstruction: bool | None = None) -> tuple:
+  """EnvConfig overrides of the env a train.py run's policy flies in: its deployment settings (run_overrides) and
+  the observation it was trained on (obs_overrides, with the proximity range its layout reads). Every controller
+  that flies a run's policy (SpecGuard, FTC-RL) builds its env from these, so its inputs match the policy's."""
+  overrides = run_overrides(cfg, reconstruction=reconstruction) + obs_overrides(run_dir)
+  if dict(overrides)["obs_layout"] in ("recovery", "context"):
+    overrides += (("proximity_range", float(cfg.env.proximity_range)),)
+  return overrides
+
+
 def specguard_from_run(name: str, run_dir: str, *, reconstruction: bool | None = None,
                        description: str = "") -> Controller:
   """Controller flying a train.py run's policy in its deployment env (with the observation layout it was trained
   on)."""
   fn, p, cfg = load_run_policy(run_dir)
-  overrides = run_overrides(cfg, reconstruction=reconstruction) + obs_overrides(run_dir)
-  if dict(overrides)["obs_layout"] in ("recovery", "context"):
-    overrides += (("proximity_range", float(cfg.env.proximity_range)),)
+  overrides = deployment_overrides(cfg, run_dir, reconstruction=reconstruction)
   return Controller(name, overrides, fn, p, description or f"SpecGuard-{cfg.variant.upper()} from {run_dir}")
 
 

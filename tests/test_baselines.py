@@ -176,6 +176,27 @@ def test_ftc_rl_builds_and_flies(ctx):
   assert all(np.all(np.isfinite(v)) for v in tr.values())
 
 
+def test_ftc_rl_flies_in_the_observation_its_run_was_trained_on(tmp_path):
+  """A cached FTC-RL run (a shipped SpecGuard run relabelled as a survival run: the same trainer writes both) is
+  deployed with the observation layout its policy_config.json records, not the env's default layout."""
+  import json
+  import shutil
+  ctx = controllers.BuildContext(cache_dir=str(tmp_path), seed=0, train_budget="ci")
+  run = common.cache_path(ctx, "ftc_rl", "")
+  shutil.copytree(os.path.join(os.path.dirname(__file__), "..", "docs", "eval", "policies", "rc_s0"), run)
+  with open(os.path.join(run, "config.json")) as f:
+    cfg = json.load(f)
+  cfg["env"]["reward"] = "survival"
+  with open(os.path.join(run, "config.json"), "w") as f:
+    json.dump(cfg, f)
+  with open(os.path.join(run, "policy_config.json")) as f:
+    trained = json.load(f)
+  c = controllers.build("ftc_rl", ctx)
+  assert dict(c.env_overrides)["obs_layout"] == trained["obs_layout"]["name"]
+  tr = fly(c, 3)
+  assert tr["obs"].shape[-1] == trained["n_obs"] and np.all(np.isfinite(tr["obs"]))
+
+
 def test_corrupt_caches_are_one_line_errors(tmp_path):
   bad = controllers.BuildContext(cache_dir=str(tmp_path), train_budget="ci")
   for name in ("ssr", "unrocker_dae", "pid_piper"):

@@ -61,7 +61,9 @@ def build(ctx):
   if run_cfg.env.reward != "survival" or run_cfg.vehicle != ctx.vehicle:
     raise ValueError(f"corrupt baseline cache {run_dir}: holds a {run_cfg.vehicle} run with reward "
                      f"{run_cfg.env.reward!r}, not an FTC (survival) run (delete it to retrain)")
-  over = controllers.run_overrides(dataclasses.replace(run_cfg, eval_detector="residual"), reconstruction=False)
+  # the run's observation layout too: the env's default layout is not the one train.py trains on
+  over = controllers.deployment_overrides(dataclasses.replace(run_cfg, eval_detector="residual"), run_dir,
+                                          reconstruction=False)
   return controllers.Controller("ftc_rl", over, fn, p,
                                 "FTC-RL: RL recovery policy trained by our PPO only to survive (no specs), reactive, "
                                 "no state reconstruction")
