@@ -97,7 +97,7 @@ class DroneEnv(RAVEnv):
     if acc_residual is not None:   # SpecGuard's attitude + thrust residual (EnvConfig.override_attitude)
       acc_sp = acc_sp + acc_residual
     if self.recovery is not None:   # baseline hook (PID-Piper, FTC): the acceleration (attitude + thrust) setpoint
-      sim, acc_sp = self.recovery.acc_setpoint(sim, acc_sp, vel_sp)
+      sim, acc_sp = self.recovery.acc_setpoint(sim, acc_sp, vel_sp, leg_dir * mission.cruise_speed)
     ctrl, rotors, _ = px4.attitude_cascade(self.mc_params, self.airframe, ctrl, acc_sp, yaw_sp, ekf.quat, rate_est, dt,
                                            armed)
     # ---- physics ----

@@ -109,6 +109,8 @@ TICK_FIELDS = {
              "not cumulative)",
     "vel_nav": "the navigator's velocity setpoint of the tick (m/s), from its state at the tick's start and the "
                "tick's EKF position",
+    "leg_vel": "the plan's leg velocity of the tick (m/s): the navigator's active leg direction (from its state at the "
+               "tick's start: waypoints only) x the mission's cruise speed, what PID-Piper's FFC takes as its target",
     "x_rec": "x'_t [15] after the tick as reconstructed (estimation.recon.INPUT_NAMES; an env with reconstruction)",
     "alarm": "the detector's alarm after the tick (0/1; an env with a detector)",
 }
@@ -179,10 +181,11 @@ def _tick_field(env, name, attack, before, after):
     return sim1["x_rec"]
   if name == "alarm":
     return sim1["det"].alarm
-  assert name == "vel_nav", name
-  _, vel_nav, _ = nav_lib.nav_step(env._nav_params(), sim0["nav"], before[2], sim1["ekf"].pos,
-                                   env._vehicle_landed(sim0), env.config.tick_dt)
-  return vel_nav
+  assert name in ("vel_nav", "leg_vel"), name
+  mission = before[2]
+  _, vel_nav, leg_dir = nav_lib.nav_step(env._nav_params(), sim0["nav"], mission, sim1["ekf"].pos,
+                                         env._vehicle_landed(sim0), env.config.tick_dt)
+  return vel_nav if name == "vel_nav" else leg_dir * mission.cruise_speed
 
 
 @functools.partial(jax.jit, static_argnames=("env", "n_ticks", "fields", "step_fields", "initial_fields"))

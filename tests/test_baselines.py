@@ -56,6 +56,8 @@ def fly(c: controllers.Controller, n_steps: int):
       if "baseline" in sim and hasattr(sim["baseline"], "model"):
         out["model"] = sim["baseline"].model.pos
         out["active"] = sim["baseline"].active
+      if isinstance(sim.get("baseline"), dict) and "cusum" in sim["baseline"]:   # PID-Piper's monitor
+        out["ffc_active"] = sim["baseline"]["active"]
       return s, out
     return jax.lax.scan(body, s0, None, length=n_steps)
 
@@ -114,9 +116,17 @@ def test_pid_piper_generalises_and_flies(ctx):
   assert meta["heldout_rmse_m_s2"] < 0.5 * meta["heldout_pid_rms_m_s2"], meta
   assert meta["loss_curve"][-1] < 0.2 * meta["loss_curve"][0], meta
   assert 0 < meta["monitor_drift"] < meta["monitor_threshold"], meta
-  tr = fly(c, int(SECONDS / 0.1))
+  tr = fly(c, int((SECONDS + 7.0) / 0.1))   # 21 s: the spoof reaches the estimate ~7 s after its onset
   assert all(np.all(np.isfinite(v)) for v in tr.values())
   assert (tr["alarm"][:, 1] > 0).any()
+  # its own monitor: never up attack-free; up within 2 s of the spoof reaching the estimate (the EKF's GPS gate holds
+  # the 20 m jump off for seconds, then resets to it), which pulls the PID (fed the spoofed position through the
+  # navigator's setpoint) away from the FFC (fed the plan's leg velocity)
+  assert not tr["ffc_active"][:, 0].any()
+  off = np.linalg.norm(tr["ekf"][:, 1] - tr["true"][:, 1], axis=-1)
+  pulled = tr["time"][:, 1][off > 10.0]
+  up = tr["time"][:, 1][tr["ffc_active"][:, 1]]
+  assert pulled.size and up.size and ONSET <= up.min() < pulled.min() + 2.0, (pulled[:3], up[:3])
 
 
 def test_ffc_window_matches_training_windows():

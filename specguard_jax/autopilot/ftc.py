@@ -60,8 +60,8 @@ class FTCHook(Estimator):
     del ekf, readings
     return {"acc": jnp.zeros(3), "active": jnp.zeros((), bool)}
 
-  def acc_setpoint(self, sim, acc_sp, vel_sp):
-    del vel_sp
+  def acc_setpoint(self, sim, acc_sp, vel_sp, leg_vel):
+    del vel_sp, leg_vel
     nav = sim["nav"]
     in_scope = (nav.phase == nav_lib.CRUISE) | (nav.phase == nav_lib.LOITER)
     active = (jnp.asarray(sim["det"].alarm) > 0) & in_scope

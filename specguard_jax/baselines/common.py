@@ -3,9 +3,10 @@
 `flights(vehicle, worlds, budget, seed)` flies attack-free autopilot missions (all missions vmapped in one jitted
 lax.scan over env steps, each an inner scan over its autopilot ticks) and records per tick what the baselines train
 on: truth, readings, the EKF's nominal state (not its covariance: the recording stays small; the full initial EKF
-state is kept for replays), controls of the previous tick, navigator phase and the navigator's velocity setpoint
-(recomputed with autopilot.navigator.nav_step from the tick's inputs: exactly what the autopilot was given); per env
-step the policy observation. Memoised per process: SSR, UnRocker and PID-Piper share one recording (and its compile).
+state is kept for replays), controls of the previous tick, navigator phase, the navigator's velocity setpoint and
+the plan's leg velocity (recomputed with autopilot.navigator.nav_step from the tick's inputs: exactly what the
+autopilot was given); per env step the policy observation. Memoised per process: SSR, UnRocker and PID-Piper share
+one recording (and its compile).
 `adam_fit` is the one minibatch Adam loop of the learned baselines (PID-Piper's MLP, UnRocker's DAE).
 """
 
@@ -68,7 +69,8 @@ def _record(env, keys, n_steps: int):
   """Attack-free flights of len(keys) missions for n_steps env steps (module doc); per-tick leaves [B, T, ...]
   (T = n_steps * ticks_per_step), 'obs' [B, n_steps, 24] (policy observation at each env step's start), 'ekf0'
   the EKF state before the first tick [B, ...]."""
-  fields = ("truth", "readings") + tuple(f"ekf.{f}" for f in EKF_FIELDS) + ("controls", "time", "phase", "vel_nav")
+  fields = ("truth", "readings") + tuple(f"ekf.{f}" for f in EKF_FIELDS) + ("controls", "time", "phase", "vel_nav",
+                                                                           "leg_vel")
   rec = envs.record(env, keys, n_steps * env.config.ticks_per_step, fields, step_fields=("obs",),
                     initial_fields=("ekf",))
   ekf = {f: rec.pop(f"ekf.{f}") for f in EKF_FIELDS}
@@ -79,7 +81,8 @@ def _record(env, keys, n_steps: int):
 def flights(vehicle: str, worlds: tuple, budget_name: str, seed: int):
   """(env, trace dict) of budget(budget_name).missions attack-free flights of budget.seconds (module doc): leaves
   [B, T, ...] per autopilot tick ('truth', 'readings', 'ekf' (nominal state: EKF_FIELDS), 'controls' of the previous
-  tick, 'time', 'phase', 'vel_nav'), 'obs' [B, S, 24] per env step, 'ekf0' [B] the full EKF state before tick 0."""
+  tick, 'time', 'phase', 'vel_nav', 'leg_vel'), 'obs' [B, S, 24] per env step, 'ekf0' [B] the full EKF state
+  before tick 0."""
   b = budget(budget_name)
   env = make_env(vehicle, worlds, b.seconds)
   keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 0xB45E), b.missions)

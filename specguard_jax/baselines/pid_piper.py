@@ -1,8 +1,8 @@
 """PID-Piper baseline (Dash et al., DSN 2021): a feed-forward controller (FFC) trained to predict the autopilot's PID
 output on attack-free flights, switched in by PID-Piper's own monitor when the FFC and the PID disagree.
 
-The FFC (specguard_jax.estimation.ffc: an LSTM over the last WINDOW ticks of sensor readings, estimate and velocity
-setpoint) predicts the PX4 velocity PID's output, the acceleration setpoint [3] that the attitude loop turns into
+The FFC (specguard_jax.estimation.ffc: an LSTM over the last WINDOW ticks of sensor readings, estimate and the plan's
+leg velocity) predicts the PX4 velocity PID's output, the acceleration setpoint [3] that the attitude loop turns into
 attitude and thrust; deployed with EnvConfig.recovery_estimator='ffc' (its output replaces the PID's at the attitude
 loop while the monitor is up), no state reconstruction. Data: attack-free autopilot flights (common.flights); the
 PID's output is replayed exactly from the recorded velocity setpoints and EKF velocities (`pid_outputs`). Trained on
@@ -50,9 +50,9 @@ def samples(env, tr):
   eul = jax.vmap(jax.vmap(math3d.quat_to_euler))(ekf["quat"])
   acc = pid_outputs(env.mc_params, tr["vel_nav"], ekf["vel"], float(env.config.tick_dt))
   rd = tr["readings"]
-  feats = ffc_lib.tick_features(tr["vel_nav"], ekf["vel"], eul, rd.gyro, rd.accel)
-  targets = ffc_lib.heading_turn(acc, eul[..., 2])
   ph = tr["phase"]
+  feats = ffc_lib.tick_features(ffc_lib.plan_target(tr["leg_vel"], ph), ekf["vel"], eul, rd.gyro, rd.accel)
+  targets = ffc_lib.heading_turn(acc, eul[..., 2])
   mask = (ph == nav_lib.CRUISE) | (ph == nav_lib.LOITER)
   return feats, targets, eul[..., 2], mask, acc
 
@@ -105,19 +105,21 @@ def predict(params, feats, yaw):
   return out.reshape(b, t, 3)
 
 
-def calibrate_monitor(deviation, mask, quantile: float = 0.99, factor: float = 2.0) -> ffc_lib.MonitorConfig:
+def calibrate_monitor(deviation, mask, quantile: float = 0.99, peak_quantile: float = 0.95,
+                      factor: float = 2.0) -> ffc_lib.MonitorConfig:
   """PID-Piper's CUSUM from attack-free deviations |a_ffc - a_pid| [B, T] (m/s^2) in scope (mask): drift = their
-  `quantile`; threshold = `factor` x the largest sum any attack-free mission reaches, and at least 25 x drift (half
-  a second of deviation twice the drift), so attack-free flights never switch."""
+  `quantile`; threshold = `factor` x the `peak_quantile` quantile of the largest sum each attack-free mission
+  reaches, and at least 25 x drift (half a second of deviation twice the drift). A quantile of per-mission peaks, not
+  their maximum: the maximum over missions grows with how many are flown (an extreme value), so the monitor would go
+  deafer the more data calibrated it."""
   d = np.asarray(deviation, np.float64)
   m = np.asarray(mask, bool)
   drift = float(np.quantile(d[m], quantile))
-  peak = 0.0
-  for b in range(d.shape[0]):   # offline calibration, numpy over a few missions
-    s = 0.0
-    for t in range(d.shape[1]):
-      s = max(0.0, s + d[b, t] - drift) if m[b, t] else 0.0
-      peak = max(peak, s)
+  s, peaks = np.zeros(d.shape[0]), np.zeros(d.shape[0])
+  for t in range(d.shape[1]):   # offline calibration: the CUSUM of every mission at once, numpy over ticks
+    s = np.where(m[:, t], np.maximum(0.0, s + d[:, t] - drift), 0.0)
+    peaks = np.maximum(peaks, s)
+  peak = float(np.quantile(peaks, peak_quantile))
   return ffc_lib.MonitorConfig(drift=drift, threshold=max(factor * peak, 25.0 * drift))
 
 
@@ -139,7 +141,7 @@ def fit(env, tr, steps: int, batch: int, key):
           "heldout_pid_rms_m_s2": float(np.sqrt(np.mean(spread ** 2))), "heldout_ticks": int(te.sum()),
           "train_ticks": int(m[:n_train].sum()), "final_loss": float(np.asarray(losses)[-50:].mean()),
           "loss_curve": common.loss_curve(losses), "monitor_drift": mon.drift, "monitor_threshold": mon.threshold,
-          "window": ffc_lib.WINDOW, "hidden": ffc_lib.HIDDEN}
+          "window": ffc_lib.WINDOW, "hidden": ffc_lib.HIDDEN, "inputs": ffc_lib.INPUTS}
   return params, meta
 
 

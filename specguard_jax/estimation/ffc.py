@@ -7,9 +7,16 @@ Here (multicopter only): the PID is the velocity PID of the PX4 cascade (autopil
 acceleration setpoint [3] (world, m/s^2, gravity excluded), becomes the attitude setpoint and collective thrust
 (`px4.attitude_cascade`): the FFC's output reaches the attitude loop. Features per tick (`tick_features`, [N_FEAT]),
 horizontal vectors in the heading frame (turned by minus the estimated yaw, so one model serves every flight
-direction): velocity setpoint (the mission target as the navigator turns it into a velocity) [3], estimated velocity
-[3], estimated roll and pitch [2], gyroscope [3] (rad/s, body), accelerometer [3] (m/s^2, body). The window holds the
-last WINDOW ticks (oldest first); the output is predicted in the heading frame and turned back to the world.
+direction): the mission target as the plan's leg velocity (the active leg's direction x the cruise speed in cruise,
+zero in loiter) [3], estimated velocity [3], estimated roll and pitch [2], gyroscope [3] (rad/s, body),
+accelerometer [3] (m/s^2, body). The window holds the last WINDOW ticks (oldest first); the output is predicted in
+the heading frame and turned back to the world.
+
+The target is the plan's, not the navigator's velocity setpoint: that setpoint corrects the estimated position's
+offset from the leg, so under a spoofed position it moves with the spoof and an FFC fed it moves with the PID (the
+monitor never fires). PID-Piper's FFC has no such error feedback: it follows the mission's targets, so a PID pulled
+away by a spoofed estimate parts from it and the monitor switches the FFC in. The estimated velocity stays an input
+(the released FFC reads the velocity estimate too).
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from specguard_jax.estimation.estimator import Estimator
 N_FEAT = 14
 WINDOW = 16      # ticks of history (0.32 s at the 50 Hz tick)
 HIDDEN = 64      # LSTM units
+INPUTS = "plan_target,vel,roll_pitch,gyro,accel"   # tick_features' layout, kept in the cache's meta
 
 
 def heading_turn(v, yaw):
@@ -42,11 +50,17 @@ def heading_unturn(v, yaw):
   return heading_turn(v, -yaw)
 
 
-def tick_features(vel_sp, vel, euler, gyro, accel):
-  """[..., N_FEAT] features of one tick (module doc). vel_sp, vel [..., 3] world m/s; euler [..., 3] rad (roll, pitch,
-  yaw); gyro [..., 3] rad/s and accel [..., 3] m/s^2 as read (body)."""
+def plan_target(leg_vel, phase):
+  """The FFC's target [..., 3] (world m/s): the plan's leg velocity leg_vel [..., 3] in cruise, zero otherwise (a
+  loiter holds its waypoint). phase [...] the navigator's."""
+  return jnp.where((phase == nav_lib.CRUISE)[..., None], leg_vel, 0.0)
+
+
+def tick_features(target, vel, euler, gyro, accel):
+  """[..., N_FEAT] features of one tick (module doc). target (plan_target), vel [..., 3] world m/s; euler [..., 3] rad
+  (roll, pitch, yaw); gyro [..., 3] rad/s and accel [..., 3] m/s^2 as read (body)."""
   yaw = euler[..., 2]
-  return jnp.concatenate([heading_turn(vel_sp, yaw), heading_turn(vel, yaw), euler[..., :2], gyro, accel], -1)
+  return jnp.concatenate([heading_turn(target, yaw), heading_turn(vel, yaw), euler[..., :2], gyro, accel], -1)
 
 
 class FFCNet(nn.Module):
@@ -71,8 +85,10 @@ def ffc_apply(params, window, yaw):
 @dataclasses.dataclass(frozen=True)
 class MonitorConfig:
   """PID-Piper's deviation monitor: CUSUM S <- max(0, S + |a_ffc - a_pid| - drift) per tick (m/s^2; S in m/s^2
-  ticks); the FFC takes over when S > threshold and hands back when S has fallen to 0 (the deviation stayed below
-  the drift long enough to drain it). Both from attack-free training flights (baselines/pid_piper.py)."""
+  ticks); the FFC takes over when S reaches the threshold and hands back when S has fallen to 0 (the deviation
+  stayed below the drift long enough to drain it). S is capped at the threshold, so after an attack of any length
+  the PID is back within threshold / drift ticks of agreeing with the FFC again. Both from attack-free training flights
+  (baselines/pid_piper.py)."""
   drift: float
   threshold: float
 
@@ -80,8 +96,8 @@ class MonitorConfig:
 def monitor_step(cfg: MonitorConfig, s, active, deviation, in_scope):
   """(S, active) after one tick. deviation [] m/s^2; in_scope [] bool (FFC allowed in this phase): out of scope the
   sum restarts and the PID flies."""
-  s = jnp.where(in_scope, jnp.maximum(0.0, s + deviation - cfg.drift), 0.0)
-  active = jnp.where(active, s > 0.0, s > cfg.threshold) & in_scope
+  s = jnp.where(in_scope, jnp.clip(s + deviation - cfg.drift, 0.0, cfg.threshold), 0.0)
+  active = jnp.where(active, s > 0.0, s >= cfg.threshold) & in_scope
   return s, active
 
 
@@ -101,6 +117,8 @@ def load_ffc(path: str):
     mon = MonitorConfig(drift=float(meta["monitor_drift"]), threshold=float(meta["monitor_threshold"]))
     if int(meta["window"]) != WINDOW or int(meta["hidden"]) != HIDDEN:
       raise ValueError(f"window {meta['window']} / hidden {meta['hidden']}, expected {WINDOW} / {HIDDEN}")
+    if meta.get("inputs") != INPUTS:
+      raise ValueError(f"inputs {meta.get('inputs', 'vel_sp,...')!r} from an older version, expected {INPUTS!r}")
   except (KeyError, TypeError, ValueError) as e:
     raise ValueError(f"corrupt baseline cache {path}: bad FFC meta ({e})") from None
   tree, _ = tree_file.load_tree(path, template())
@@ -129,10 +147,11 @@ class FFCHook(Estimator):
     return {"window": jnp.zeros((WINDOW, N_FEAT)), "filled": jnp.zeros((), bool), "cusum": jnp.zeros(()),
             "active": jnp.zeros((), bool), "acc_ffc": jnp.zeros(3)}
 
-  def acc_setpoint(self, sim, acc_sp, vel_sp):
+  def acc_setpoint(self, sim, acc_sp, vel_sp, leg_vel):
+    del vel_sp   # the FFC follows the plan, not the navigator's estimate-driven setpoint (module doc)
     st, est, rd, nav = sim["baseline"], sim["ekf"], sim["readings"], sim["nav"]
     euler = ekf_lib.ekf_euler(est)
-    f = tick_features(vel_sp, est.vel, euler, rd.gyro, rd.accel)
+    f = tick_features(plan_target(leg_vel, nav.phase), est.vel, euler, rd.gyro, rd.accel)
     # the first tick fills the whole window with its features (as the training windows repeat a mission's first tick)
     window = jnp.where(st["filled"], jnp.concatenate([st["window"][1:], f[None]]),
                        jnp.broadcast_to(f, st["window"].shape))

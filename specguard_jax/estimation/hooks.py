@@ -6,7 +6,8 @@ EnvConfig.recovery_estimator picks one ('software_sensors': SSR, 'dae': the stat
   state = est.init(ekf, readings)                      at reset (kept in sim['baseline'])
   sim, readings_for_ekf = est.pre_ekf(sim, readings)   before the autopilot's EKF fuses this tick's readings
   sim, estimate = est.post_ekf(sim, ekf, readings)     the estimate the navigator and autopilot fly on
-  sim, acc_sp = est.acc_setpoint(sim, acc_sp, vel_sp)  the acceleration setpoint of the multicopter's attitude loop
+  sim, acc_sp = est.acc_setpoint(sim, acc_sp, vel_sp, leg_vel)
+                                                       the acceleration setpoint of the multicopter's attitude loop
 All see sim['det'] (the detector's alarm and diagnosis mask of the PREVIOUS tick: the detector runs after the EKF).
 """
 
