@@ -127,6 +127,13 @@ def test_pid_piper_generalises_and_flies(ctx):
   pulled = tr["time"][:, 1][off > 10.0]
   up = tr["time"][:, 1][tr["ffc_active"][:, 1]]
   assert pulled.size and up.size and ONSET <= up.min() < pulled.min() + 2.0, (pulled[:3], up[:3])
+  # the FFC reads the plan's leg velocity, not the navigator's setpoint (which follows a spoofed position)
+  env = common.make_env("drone", controllers.DEFAULT_WORLDS[:1], 40.0, **c.overrides())
+  sim = env.reset(jax.random.PRNGKey(1)).info["sim"]
+  leg = jnp.array([3.0, 0.0, 0.0])
+  a1 = env.recovery.acc_setpoint(sim, jnp.zeros(3), jnp.zeros(3), leg)[0]["baseline"]["acc_ffc"]
+  a2 = env.recovery.acc_setpoint(sim, jnp.zeros(3), jnp.array([0.0, 5.0, 1.0]), leg)[0]["baseline"]["acc_ffc"]
+  np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
 
 
 def test_ffc_window_matches_training_windows():
