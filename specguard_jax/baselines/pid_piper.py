@@ -110,9 +110,9 @@ def calibrate_monitor(deviation, mask, quantile: float = 0.999, peak_quantile: f
   """PID-Piper's CUSUM from attack-free deviations |a_ffc - a_pid| [B, T] (m/s^2) in scope (mask): drift = their
   `quantile` (the 99th percentile let evaluation missions longer than the calibration flights switch the FFC in
   attack-free: 3 of 24 at `ci`); threshold = `factor` x the `peak_quantile` quantile of the largest sum each
-  attack-free mission reaches, and at least 25 x drift (half a second of deviation twice the drift). A quantile of per-mission peaks, not
-  their maximum: the maximum over missions grows with how many are flown (an extreme value), so the monitor would go
-  deafer the more data calibrated it."""
+  attack-free mission reaches, and at least 25 x drift (half a second of deviation twice the drift). A quantile of
+  per-mission peaks, not their maximum: the maximum over missions grows with how many are flown (an extreme value),
+  so the monitor would go deafer the more data calibrated it."""
   d = np.asarray(deviation, np.float64)
   m = np.asarray(mask, bool)
   drift = float(np.quantile(d[m], quantile))
