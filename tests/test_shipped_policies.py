@@ -17,7 +17,7 @@ RUNS = sorted(d for d in os.listdir(ROOT) if os.path.isdir(os.path.join(ROOT, d)
 
 
 def test_the_reference_runs_are_shipped():
-  assert {"rc_s0", "rc_s1", "rc_s2", "pc_s0", "binary_s0"} <= set(RUNS)
+  assert {"rc_s0", "rc_s1", "rc_s2", "pc_s0", "binary_s0", "suburban_s0", "urban_s0", "rover_s0"} <= set(RUNS)
 
 
 @pytest.mark.parametrize("name", RUNS)
@@ -35,4 +35,6 @@ def test_shipped_policy_loads_and_acts(name):
   assert act.shape == (4, 3) and np.isfinite(act).all()
   with open(os.path.join(run, "summary.json")) as f:
     summary = json.load(f)
-  assert summary["env_steps"] > 0 and "attack_free" in summary["heldout"]
+  assert summary["env_steps"] > 0
+  if cfg.eval_missions:   # the paper suite's unseen-world and rover runs were trained without a held-out evaluation
+    assert "attack_free" in summary["heldout"]
