@@ -325,6 +325,20 @@ def _f(x, nd=1):
   return f"{x:.{nd}f}"
 
 
+def _g(x) -> str:
+  """A build record's number: integers as they are, others to 3 significant digits."""
+  return str(x) if isinstance(x, int) else f"{x:.3g}"
+
+
+def builds_line(builds: dict) -> str:
+  """The header line of what each trained baseline's cache says of its fit ({"group/controller": build record}):
+  its numbers; lists (loss and return curves) and flags stay in report.json (meta.baseline_builds)."""
+  return "- trained baselines' builds (numbers; curves in report.json meta.baseline_builds): " + "; ".join(
+      f"{k} " + (b["error"] if "error" in b else ", ".join(
+          f"{n} {_g(v)}" for n, v in b.items() if isinstance(v, (int, float)) and not isinstance(v, bool)))
+      for k, b in builds.items())
+
+
 def _ci(rate, with_n: bool = True):
   if not rate or rate.get("value") is None:
     return "n/a"
@@ -357,6 +371,8 @@ def markdown(rep) -> str:
   if meta.get("recovery_rules"):   # the fallback, and a learned policy trained over the rule (a residual on it)
     L[-1:-1] = ["- rule under the alarm (EnvConfig.recovery_rule), where not none: " + ", ".join(
         f"{k} {v}" for k, v in meta["recovery_rules"].items())]
+  if meta.get("baseline_builds"):
+    L[-1:-1] = [builds_line(meta["baseline_builds"])]
   L += hard_markdown(ex.get("hard"))
   L += hard_goal_markdown(ex.get("hard_goal"))
   L += violation_timing_markdown(rep)

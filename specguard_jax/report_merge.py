@@ -112,6 +112,7 @@ def merge(parts: list[dict], command: str) -> tuple[dict, dict, dict]:
       runs={k: v for m in metas for k, v in (m.get("runs") or {}).items()},
       recon_modes={k: v for m in metas for k, v in (m.get("recon_modes") or {}).items()},
       recovery_rules={k: v for m in metas for k, v in (m.get("recovery_rules") or {}).items()},
+      baseline_builds={k: v for m in metas for k, v in (m.get("baseline_builds") or {}).items()},
       redteam=next((m["redteam"] for m in metas if m.get("redteam")), None),
       eval_wall_s=float(sum(m.get("eval_wall_s") or 0.0 for m in metas)),
       merged_from=[{"dir": p["dir"], "command": m.get("command"), "date": m.get("date"),

@@ -7,6 +7,7 @@ FTC-RL trains with the PPO trainer (~3 min on 2 CPU cores): set BASELINES_FTC=1 
 The no-worse-than-no-protection rule on attacks the EKF rejects:
 test_no_baseline_worse_than_no_protection_on_attacks_the_ekf_rejects below."""
 
+import json
 import os
 
 import jax
@@ -134,6 +135,25 @@ def test_pid_piper_generalises_and_flies(ctx):
   a1 = env.recovery.acc_setpoint(sim, jnp.zeros(3), jnp.zeros(3), leg)[0]["baseline"]["acc_ffc"]
   a2 = env.recovery.acc_setpoint(sim, jnp.zeros(3), jnp.array([0.0, 5.0, 1.0]), leg)[0]["baseline"]["acc_ffc"]
   np.testing.assert_array_equal(np.asarray(a1), np.asarray(a2))
+
+
+def test_report_records_a_trained_baselines_build(ctx, tmp_path):
+  """evaluate.py records what a trained baseline's cache says of its fit (report.json meta.baseline_builds; its
+  numbers in report.md's header): PID-Piper's held-out error and monitor threshold; an unreadable cache is an error
+  entry, not a crash."""
+  from specguard_jax import report as R
+  from specguard_jax.cli import evaluate as evaluate_cli
+  controllers.build("pid_piper", ctx)   # cached by the module's earlier test, else built here
+  b = evaluate_cli.baseline_build(ctx, "pid_piper")
+  _, meta = common.load_tree(common.cache_path(ctx, "pid_piper", "msgpack"))
+  assert b["heldout_rmse_m_s2"] == pytest.approx(float(meta["heldout_rmse_m_s2"]))
+  assert b["monitor_threshold"] > b["monitor_drift"] > 0 and len(b["loss_curve"]) == 10, b
+  json.dumps(b)   # plain JSON
+  missing = evaluate_cli.baseline_build(controllers.BuildContext(cache_dir=str(tmp_path), train_budget="ci"), "ssr")
+  assert list(missing) == ["error"] and "corrupt baseline cache" in missing["error"], missing
+  head = R.builds_line({"main/pid_piper": b, "main/ssr": missing})
+  assert f"main/pid_piper seed 0, heldout_rmse_m_s2 {b['heldout_rmse_m_s2']:.3g}," in head, head
+  assert "; main/ssr ValueError: corrupt baseline cache" in head and "loss_curve" not in head, head
 
 
 def test_ffc_window_matches_training_windows():

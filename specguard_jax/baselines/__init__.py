@@ -10,6 +10,10 @@ Builders import their modules lazily (importing this package stays cheap and nev
 
 from specguard_jax import controllers
 
+TRAINED = ("ssr", "unrocker_dae", "pid_piper", "ftc_rl")
+"""The baselines that train or fit (the others are rules): each leaves a cache whose build record
+common.build_meta reads (held-out errors, monitor threshold, FTC-RL's return curve)."""
+
 
 def _lazy(module: str):
   def builder(ctx):

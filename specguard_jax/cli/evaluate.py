@@ -132,7 +132,8 @@ def _parser() -> argparse.ArgumentParser:
   p.add_argument("--merge", nargs="+", metavar="DIR",
                  help="merge finished evaluations (report.json + records/) of the same missions into one report in "
                       "--out; no rollout is flown")
-  p.add_argument("--no-progress", action="store_true")
+  p.add_argument("--no-progress", action="store_true",
+                 help="no progress bar on stderr: one line per stage on stdout instead (for a job's log)")
   p.add_argument("--compile-cache", metavar="DIR|off",
                  help="persistent XLA compilation cache (default $SPECGUARD_COMPILE_CACHE or "
                       "~/.cache/specguard_jax/xla; off: none)")
@@ -149,15 +150,18 @@ def _csv(s):
 
 
 class Progress:
-  """One-line progress bar on stderr: rollouts done / total, elapsed, ETA."""
+  """One-line progress bar on stderr: rollouts done / total, elapsed, ETA. Disabled (--no-progress), one plain line
+  per stage on stdout instead, for a job's log: which stage a long evaluation is in (building, training a
+  baseline, compiling, flying) and since when."""
 
   def __init__(self, total: int, enabled: bool = True):
     self.total, self.done, self.t0, self.enabled = max(total, 1), 0, time.time(), enabled
 
   def show(self, label: str) -> None:
-    if not self.enabled:
-      return
     el = time.time() - self.t0
+    if not self.enabled:
+      print(f"[{el:5.0f} s] {self.done}/{self.total} rollouts; {label}", flush=True)
+      return
     frac = self.done / self.total
     eta = f"{el / frac * (1 - frac):5.0f}s" if frac > 0 else "    ?"
     bar = "#" * int(30 * frac) + "-" * (30 - int(30 * frac))
@@ -543,6 +547,18 @@ def requested_not_run(args, not_run: dict) -> str | None:
   return None
 
 
+def baseline_build(ctx, name: str) -> dict:
+  """A trained baseline's build record for report.json: its cache's meta (baselines.common.build_meta: held-out
+  errors, monitor drift and threshold, a 10-point loss curve; FTC-RL's return curve), or the error reading it."""
+  from specguard_jax import report as R
+  from specguard_jax.baselines import common
+  try:
+    meta = common.build_meta(ctx, name)
+  except Exception as e:  # noqa: BLE001 - a record it cannot read is reported, the evaluation goes on
+    return {"error": f"{type(e).__name__}: {' '.join(str(e).split())[:200]}"}
+  return R.jsonable(meta)
+
+
 def _attacker(red) -> dict:
   """evaluation.rollout's attacker arguments of a job's red-team agent (none: {})."""
   return {"attacker": red["agent"], "attacker_params": red["params"]} if red else {}
@@ -601,6 +617,7 @@ def main(argv=None) -> int:
   import jax
 
   from envs.missions import MissionConfig
+  from specguard_jax import baselines as baselines_lib
   from specguard_jax import controllers as C
   from specguard_jax import evaluation as E
   from specguard_jax import report as R
@@ -612,6 +629,7 @@ def main(argv=None) -> int:
   results = {"groups": {}, "not_run": {}, "skipped_experiments": p["skipped"], "rollouts": []}
   records, trajs = {}, {}
   jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
+  builds = {}   # "group/controller": a trained baseline's build record (baseline_build)
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s), "mission_file": args.mission or "",
             "params_file": args.params or ""}
@@ -656,6 +674,8 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
+      if isinstance(c, str) and c in baselines_lib.TRAINED:   # what its cache says of its training, for the report
+        builds[f"{gname}/{ctrl.name}"] = baseline_build(g["ctx"], c)
       with warnings.catch_warnings():   # the files' notices were shown by check_user_files
         warnings.simplefilter("ignore")
         env = E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})
@@ -718,7 +738,9 @@ def main(argv=None) -> int:
           "recon_modes": {f"{g}/{c}": v["recon_mode"] for g, grp in results["groups"].items()
                           for c, v in grp["controllers"].items()},
           "recovery_rules": {f"{g}/{c}": v["recovery_rule"] for g, grp in results["groups"].items()
-                             for c, v in grp["controllers"].items() if v["recovery_rule"] != "none"}}
+                             for c, v in grp["controllers"].items() if v["recovery_rule"] != "none"},
+          "baseline_builds": {k: v for k, v in builds.items()
+                              if tuple(k.split("/", 1)) in {(g, c.name) for g, c, *_ in jobs}}}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
   report["meta"]["eval_wall_s"] = wall
