@@ -20,7 +20,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-NAMES = ("ssr", "unrocker_dae", "pid_piper", "ftc_rl")   # the baselines that train (unrocker, ftc: rules)
+from specguard_jax.baselines import TRAINED as NAMES  # noqa: E402  (the baselines that train; unrocker, ftc: rules)
 
 
 def _fail(msg: str):

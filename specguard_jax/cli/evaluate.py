@@ -629,7 +629,7 @@ def main(argv=None) -> int:
   results = {"groups": {}, "not_run": {}, "skipped_experiments": p["skipped"], "rollouts": []}
   records, trajs = {}, {}
   jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
-  builds = {}   # "group/controller": a trained baseline's build record (baseline_build)
+  builds = {}   # "group/controller": a flown trained baseline's build record (baseline_build)
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s), "mission_file": args.mission or "",
             "params_file": args.params or ""}
@@ -674,8 +674,6 @@ def main(argv=None) -> int:
         results["not_run"][f"{gname}/{label}"] = f"build failed: {type(e).__name__}: {' '.join(str(e).split())}"
         bar.step(f"{gname}: {label} not run")
         continue
-      if isinstance(c, str) and c in baselines_lib.TRAINED:   # what its cache says of its training, for the report
-        builds[f"{gname}/{ctrl.name}"] = baseline_build(g["ctx"], c)
       with warnings.catch_warnings():   # the files' notices were shown by check_user_files
         warnings.simplefilter("ignore")
         env = E.make_env(g["vehicle"], **{**base, **ctrl.overrides()})
@@ -690,6 +688,8 @@ def main(argv=None) -> int:
           continue
         results.setdefault("redteam", {})[ctrl.name] = {k: red[k] for k in ("dir", "trained", "train_s", "history",
                                                                             "config")}
+      if isinstance(c, str) and c in baselines_lib.TRAINED:   # what its cache says of its training, for the report
+        builds[f"{gname}/{ctrl.name}"] = baseline_build(g["ctx"], c)
       jobs.append((gname, ctrl, env, red))
   refused = requested_not_run(args, results["not_run"])
   if refused:
@@ -739,8 +739,7 @@ def main(argv=None) -> int:
                           for c, v in grp["controllers"].items()},
           "recovery_rules": {f"{g}/{c}": v["recovery_rule"] for g, grp in results["groups"].items()
                              for c, v in grp["controllers"].items() if v["recovery_rule"] != "none"},
-          "baseline_builds": {k: v for k, v in builds.items()
-                              if tuple(k.split("/", 1)) in {(g, c.name) for g, c, *_ in jobs}}}
+          "baseline_builds": builds}
   report = R.build(results, records, meta)
   report["wall_s"] = time.time() - t_start
   report["meta"]["eval_wall_s"] = wall
