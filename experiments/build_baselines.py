@@ -3,8 +3,9 @@
   python experiments/build_baselines.py --budget full --out runs/default/eval/baselines    # GPU, before evaluate.py
   JAX_PLATFORMS=cpu python experiments/build_baselines.py --budget ci --out /tmp/bl --only ssr,unrocker_dae,pid_piper
 
-The cache names are <name>_<vehicle>_<budget>_s<seed> (specguard_jax.baselines.common.cache_path): evaluate.py reuses
-them when --out here is <evaluate --out>/baselines and --seed is evaluate.py's --seed (default 10000 for both).
+The cache names are <name>_<vehicle>_<budget>_s<seed>_w<worlds tag> (specguard_jax.baselines.common.cache_path):
+evaluate.py reuses them when --out here is <evaluate --out>/baselines, --seed is evaluate.py's --seed (default 10000
+for both) and --worlds its worlds (a --run's training worlds; with other worlds it builds its own).
 Walls (and this process's CPU seconds, the fairer figure on a shared CPU): 'flights' = the attack-free recording SSR, UnRocker and PID-Piper share (timed alone first, compile
 included), then each builder (compiles included; a cached baseline only loads). Per baseline the cache's meta
 (fit losses, held-out errors, pairs) and, for FTC, the run's summary and return curve are reported.

@@ -213,6 +213,11 @@ def clear_cache() -> None:
   _COMPILED.clear()
 
 
+def cached_rollouts() -> int:
+  """How many compiled rollouts `rollout` / `precompile` hold (each pins its executable's memory until clear_cache)."""
+  return len(_COMPILED)
+
+
 def _setting_salt(s: Setting) -> int:
   return zlib.crc32(s.name.encode()) & 0x7FFFFFFF
 
@@ -365,6 +370,14 @@ def _static(env, policy, policy_params, settings, missions, max_s, n_traj, attac
   static = dict(env=env, policy=policy, settings=settings, n=int(missions), max_steps=int(round(max_s / env.dt)),
                 n_traj=int(n_traj), attacker=attacker, believed=bool(believed))
   return static, tuple(static.items()) + (jax.tree.structure(policy_params), jax.tree.structure(attacker_params))
+
+
+def rollout_key(job: dict) -> tuple:
+  """The compile-cache key of one `precompile` job (a dict of `rollout`'s arguments): two jobs with equal keys share
+  one compiled executable."""
+  return _static(job["env"], job["policy"], job["policy_params"], _as_settings(job["settings"]), job["missions"],
+                 job.get("max_s", 400.0), job.get("n_traj", 0), job.get("attacker"), job.get("attacker_params"),
+                 job.get("believed", True))[1]
 
 
 def precompile(jobs, *, workers: int = 0) -> dict:

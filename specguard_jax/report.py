@@ -118,8 +118,8 @@ def build(results: dict, records: dict, meta: dict) -> dict:
          "groups": groups, "paper": PAPER}
   rep["totals"] = {"missions": int(sum(r["missions"] for r in results["rollouts"])),
                    "rollouts": len(results["rollouts"]),
-                   # compile wall time (the rollouts compile together, overlapped: evaluation.precompile) and the
-                   # sum of the per-rollout compile times
+                   # compile wall time (on an accelerator the rollouts compile together, overlapped:
+                   # evaluation.precompile; on the CPU one by one) and the sum of the per-rollout compile times
                    "compile_s": float(results.get("compile_wall_s",
                                                   sum(r.get("compile_s", 0.0) for r in results["rollouts"]))),
                    "compile_sum_s": float(sum(r.get("compile_s", 0.0) for r in results["rollouts"])),

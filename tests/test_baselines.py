@@ -7,6 +7,7 @@ FTC-RL trains with the PPO trainer (~3 min on 2 CPU cores): set BASELINES_FTC=1 
 The no-worse-than-no-protection rule on attacks the EKF rejects:
 test_no_baseline_worse_than_no_protection_on_attacks_the_ekf_rejects below."""
 
+import dataclasses
 import json
 import os
 
@@ -232,6 +233,15 @@ def test_ftc_rl_flies_in_the_observation_its_run_was_trained_on(tmp_path):
   assert dict(c.env_overrides)["obs_layout"] == trained["obs_layout"]["name"]
   tr = fly(c, 3)
   assert tr["obs"].shape[-1] == trained["n_obs"] and np.all(np.isfinite(tr["obs"]))
+
+
+def test_a_cache_is_per_training_worlds(tmp_path):
+  """A baseline trained in other worlds (or the same worlds in another order) is another cache, never reused."""
+  a = controllers.BuildContext(cache_dir=str(tmp_path), train_budget="ci", worlds=("urban_park", "open_mountain"))
+  paths = {common.cache_path(dataclasses.replace(a, worlds=w), "ssr", "msgpack")
+           for w in (a.worlds, a.worlds[::-1], a.worlds[:1])}
+  assert len(paths) == 3
+  assert common.cache_path(a, "ssr", "msgpack") == common.cache_path(dataclasses.replace(a), "ssr", "msgpack")
 
 
 def test_corrupt_caches_are_one_line_errors(tmp_path):

@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import json
 import os
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -50,9 +51,15 @@ def budget(name: str) -> Budget:
   raise ValueError(f"unknown train_budget {name!r}; choose one of {', '.join(BUDGETS)}")
 
 
+def worlds_tag(worlds) -> str:
+  """8 hex digits naming a tuple of training worlds (in order: the order sets which missions fly where)."""
+  return f"{zlib.crc32(','.join(worlds).encode()):08x}"
+
+
 def cache_path(ctx, name: str, ext: str) -> str:
-  """<cache_dir>/<name>_<vehicle>_<budget>_s<seed>.<ext> (ext '' -> a directory)."""
-  base = os.path.join(ctx.cache_dir, f"{name}_{ctx.vehicle}_{ctx.train_budget}_s{ctx.seed}")
+  """<cache_dir>/<name>_<vehicle>_<budget>_s<seed>_w<worlds_tag>.<ext> (ext '' -> a directory): a baseline trained in
+  other worlds is another cache, never reused by mistake."""
+  base = os.path.join(ctx.cache_dir, f"{name}_{ctx.vehicle}_{ctx.train_budget}_s{ctx.seed}_w{worlds_tag(ctx.worlds)}")
   return base + (f".{ext}" if ext else "")
 
 

@@ -695,18 +695,28 @@ def main(argv=None) -> int:
   if refused:
     bar.close()
     return _fail(refused)
-  bar.show(f"compiling {len(jobs)} rollouts")
-  compiled = E.precompile([{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params,
-                            "settings": p["groups"][gname]["settings"], "missions": missions, "max_s": args.max_s,
-                            "n_traj": args.traj, **_attacker(red)} for gname, ctrl, env, red in jobs])
-  results["compile_wall_s"] = compiled["wall"]
+  specs = [{"env": env, "policy": ctrl.policy, "policy_params": ctrl.params, "settings": p["groups"][gname]["settings"],
+            "missions": missions, "max_s": args.max_s, "n_traj": args.traj, **_attacker(red)}
+           for gname, ctrl, env, red in jobs]
+  # A compiled rollout on the CPU holds ~4,000 memory mappings: 16 at once exceed the kernel's limit
+  # (vm.max_map_count, 65,530 by default) and LLVM fails. So on the CPU each rollout compiles just before its flight
+  # and is freed after it unless a later job shares it; an accelerator's host compiles them all together, overlapped.
+  one_by_one = backend == "cpu"
+  keys = [E.rollout_key(s) for s in specs] if one_by_one else []
+  compiled = {}
+  if not one_by_one:
+    bar.show(f"compiling {len(jobs)} rollouts")
+    compiled = E.precompile(specs)
+    results["compile_wall_s"] = compiled["wall"]
   for i, (gname, ctrl, env, red) in enumerate(jobs):
     g, grp = p["groups"][gname], results["groups"][gname]
     bar.show(f"{gname}: {ctrl.name} ({len(g['settings'])} settings x {missions})")
     timing = {}
-    rec, traj, steps = E.rollout(env, ctrl.policy, ctrl.params, g["settings"], missions=missions, seed=args.seed,
-                                 max_s=args.max_s, n_traj=args.traj, timing=timing, **_attacker(red))
+    rec, traj, steps = E.rollout(**specs[i], seed=args.seed, timing=timing,
+                                 cache=not one_by_one or keys[i] in keys[i + 1:])
     timing["compile_s"] += compiled.get(i, 0.0)   # this job's own (overlapped) compile, 0 if shared
+    if one_by_one:   # jax's own caches keep a flown executable (~4,000 mappings of code) alive: drop them too
+      jax.clear_caches()
     records[(gname, ctrl.name)] = rec
     trajs[(gname, ctrl.name)] = traj
     grp["controllers"][ctrl.name] = {"description": ctrl.description,
