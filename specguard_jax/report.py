@@ -470,7 +470,8 @@ def markdown(rep) -> str:
   L += paired_markdown(rep)
   L += policy_effect_markdown(rep)
   L += false_alarm_markdown(rep)
-  L += ["", "Figures: figures/*.png (trajectory, altitude_yaw, t2r_cdf, svr_heatmap, comparison, per_sensor).", ""]
+  if rep.get("figures"):   # the files write() made (none with --no-figures; no trajectories after --merge)
+    L += ["", f"Figures: {', '.join(rep['figures'])}.", ""]
   return "\n".join(L)
 
 

@@ -100,7 +100,8 @@ def tmp(tmp_path, monkeypatch):
   """The case's directory: a file, a valid run dir and broken ones; the trainer and the env builder are tripwires."""
   def tripwire(*a, **k):
     raise AssertionError("a bad input got past the checks")
-  for mod, names in ((runner, ("train", "train_sweep")), (evaluation, ("make_env", "precompile"))):
+  for mod, names in ((runner, ("train", "train_sweep")),
+                     (evaluation, ("make_env", "precompile", "rollout_key", "rollout"))):
     for name in names:
       monkeypatch.setattr(mod, name, tripwire)
   (tmp_path / "afile").write_text("x")
@@ -162,10 +163,11 @@ def test_default_suite_still_skips_a_controller_without_its_run(tmp, monkeypatch
   class Reached(Exception):
     pass
 
-  def precompile(jobs):
-    raise Reached([j["env"] for j in jobs])
+  def reached(jobs):   # precompile (an accelerator) or rollout_key (the CPU): the first call after the builds
+    raise Reached(jobs)
   monkeypatch.setattr(evaluation, "make_env", lambda *a, **k: "env")
-  monkeypatch.setattr(evaluation, "precompile", precompile)
+  monkeypatch.setattr(evaluation, "precompile", reached)
+  monkeypatch.setattr(evaluation, "rollout_key", reached)
   with pytest.raises(Reached):
     evaluate_cli.main(["--out", str(tmp / "out"), "--no-progress"])
   assert capsys.readouterr().err == ""

@@ -46,7 +46,8 @@ def train_config(ctx) -> config_lib.TrainConfig:
 
 
 def build(ctx):
-  """Controller 'ftc_rl': train (or load from ctx.cache_dir/ftc_rl_<vehicle>_<budget>_s<seed>/) and deploy."""
+  """Controller 'ftc_rl': train (or load from ctx.cache_dir/ftc_rl_<vehicle>_<budget>_s<seed>_w<worlds tag>/)
+  and deploy."""
   run_dir = common.cache_path(ctx, "ftc_rl", "")
   cfg = train_config(ctx)
   if not os.path.exists(os.path.join(run_dir, "summary.json")):

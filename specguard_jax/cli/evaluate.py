@@ -628,7 +628,7 @@ def main(argv=None) -> int:
   bar = Progress(n_roll, enabled=not args.no_progress)
   results = {"groups": {}, "not_run": {}, "skipped_experiments": p["skipped"], "rollouts": []}
   records, trajs = {}, {}
-  jobs = []   # (group name, controller, env): built first, compiled together, then flown one by one
+  jobs = []   # (group name, controller, env, red team): all built first, then compiled and flown (below)
   builds = {}   # "group/controller": a flown trained baseline's build record (baseline_build)
   for gname, g in p["groups"].items():
     base = {"worlds": tuple(g["worlds"]), "max_episode_s": float(args.max_s), "mission_file": args.mission or "",
