@@ -137,10 +137,12 @@ def _is_redteam(name: str) -> bool:
 
 def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
   """The red-team campaign's log: {controller: {agent (its dir, whether trained in this run, training seconds and
-  per-iteration history), setting, missions: [{mission, world, sensor, onset_s, duration_s, violated, complete,
-  crash, collision}] (sensor None and onset/duration None when the agent never attacked), summary: {missions,
-  attacked, sensors: {name: count}, onset_s / duration_s: {median, min, max} over the attacked missions,
-  any_violation}}}; {} when no red-team setting was flown."""
+  per-iteration history), setting, missions: [{mission, world, sensor (the agent's first choice), sensors (all it
+  spoofed), onset_s, duration_s, violated, complete, crash, collision}] (sensor None and onset/duration None when the
+  agent never attacked; duration_s ends at the episode's end, so a crash during the attack cuts it short), summary:
+  {missions, attacked, sensors: {name: missions spoofing it}, combinations: {'gyro+mag': missions}, onset_s /
+  duration_s: {median, min, max} over the attacked missions, any_violation, crash}}}; {} when no red-team setting
+  was flown."""
   from specguard_jax.types import SENSOR_NAMES
   g = results["groups"].get(group)
   if not g:
@@ -167,11 +169,19 @@ def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
     def stats(x):
       x = x[np.isfinite(x)]
       return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max())} if len(x) else None
-    counts = {n: int(np.sum(sens == j)) for j, n in enumerate(SENSOR_NAMES) if np.any(sens == j)}
+    counts = {n: sum(n in m["sensors"] for m in rows) for n in SENSOR_NAMES}
+    combos = {}
+    for m in rows:
+      if m["sensors"]:
+        combos["+".join(m["sensors"])] = combos.get("+".join(m["sensors"]), 0) + 1
+    n = len(rows)
     out[cname] = {"setting": names[0], "agent": (results.get("redteam") or {}).get(cname), "missions": rows,
-                  "summary": {"missions": len(rows), "attacked": float(np.mean(hit)) if len(rows) else 0.0,
-                              "sensors": counts, "onset_s": stats(onset), "duration_s": stats(dur),
-                              "any_violation": float(np.mean(viol)) if len(rows) else 0.0}}
+                  "summary": {"missions": n, "attacked": float(np.mean(hit)) if n else 0.0,
+                              "sensors": {k: v for k, v in counts.items() if v},
+                              "combinations": dict(sorted(combos.items(), key=lambda kv: -kv[1])),
+                              "onset_s": stats(onset), "duration_s": stats(dur),
+                              "any_violation": float(np.mean(viol)) if n else 0.0,
+                              "crash": float(np.mean(np.asarray(r["crash"]) > 0)) if n else 0.0}}
   return out
 
 
@@ -623,17 +633,34 @@ def redteam_markdown(log) -> list:
     return []
   L = ["## Red-team campaign: what each controller's attack agent chose", "",
        "Each controller against its own best-response attack agent (specguard_jax.ppo.redteam; per-mission sensors, "
-       "onsets and durations in report.json 'redteam', figures/redteam.png).", "",
+       "onsets and durations in report.json 'redteam', figures/redteam.png). Sensors: the sets spoofed together, "
+       "with their missions; a duration ends at the episode's end, so a crash during the attack cuts it short.", "",
        "| controller | agent | missions | attacked % | sensors | onset s (median) | duration s (median) | "
-       "any violation % |", "|---|---|---|---|---|---|---|---|"]
+       "any violation % | crash % |", "|---|---|---|---|---|---|---|---|---|"]
   for c, v in log.items():
     s, a = v["summary"], v.get("agent") or {}
     how = ("trained here" if a.get("trained") else "loaded") + (f" ({a['train_s']:.0f} s)" if a.get("train_s") else "")
     med = lambda x: f"{x['median']:.1f}" if x else "n/a"  # noqa: E731
-    sens = ", ".join(f"{k} {n}" for k, n in s["sensors"].items()) or "none"
+    sens = ", ".join(f"{k} {n}" for k, n in s.get("combinations", s["sensors"]).items()) or "none"
+    crash = f"{100 * s['crash']:.1f}" if "crash" in s else "n/a"
     L.append(f"| {c} | {how} | {s['missions']} | {100 * s['attacked']:.0f} | {sens} | {med(s['onset_s'])} | "
-             f"{med(s['duration_s'])} | {100 * s['any_violation']:.1f} |")
-  return L + [""]
+             f"{med(s['duration_s'])} | {100 * s['any_violation']:.1f} | {crash} |")
+  return L + ["", redteam_verdict(log), ""]
+
+
+def redteam_verdict(log: dict) -> str:
+  """One plain line: the controller that fared best against its own red team, and whether any kept most of its
+  missions free of violations (the red team is a best response: what it finds is what a controller leaves open)."""
+  rates = {c: v["summary"]["any_violation"] for c, v in log.items()}
+  best = min(rates, key=rates.get)
+  crashes = [v["summary"].get("crash") for v in log.values() if v["summary"].get("crash") is not None]
+  line = (f"Verdict: against its own red team the best controller is {best} with {100 * rates[best]:.1f} % of "
+          f"missions violating (worst: {100 * max(rates.values()):.1f} %)")
+  if crashes:
+    line += f"; crashes {100 * min(crashes):.1f}-{100 * max(crashes):.1f} %"
+  held = [c for c, r in rates.items() if r < 0.5]
+  return line + (". No controller keeps even half of its missions compliant." if not held else
+                 f". Kept most missions compliant: {', '.join(held)}.")
 
 
 KEY_OPPONENTS = ("no_protection", "delorean")
@@ -894,14 +921,15 @@ def make_figures(out_dir: str, rep: dict, records: dict, trajs: dict) -> list:
 
 
 def redteam_figure(log: dict, plt):
-  """The red-team agents' choices per controller: target sensors (bars) and each attacked mission's onset vs
+  """The red-team agents' choices per controller: missions spoofing each sensor (bars; a two-sensor attack counts for
+  both) and each attacked mission's onset vs
   duration (red: a spec violated or a crash, grey: none)."""
   from specguard_jax.types import SENSOR_NAMES
   ctrls = list(log)
   fig, axes = plt.subplots(1, 2, figsize=(11, 4))
   w = 0.8 / max(len(ctrls), 1)
   for j, c in enumerate(ctrls):
-    counts = [log[c]["summary"]["sensors"].get(n, 0) for n in SENSOR_NAMES]
+    counts = [log[c]["summary"]["sensors"].get(n, 0) for n in SENSOR_NAMES]   # missions spoofing it
     axes[0].bar(np.arange(len(SENSOR_NAMES)) + j * w, counts, w, label=c)
     rows = [m for m in log[c]["missions"] if m["sensor"] is not None]
     for viol in (False, True):
@@ -912,7 +940,7 @@ def redteam_figure(log: dict, plt):
                         alpha=0.7, label=f"{c}, {'violated' if viol else 'no violation'}")
   axes[0].set_xticks(np.arange(len(SENSOR_NAMES)) + w * (len(ctrls) - 1) / 2, SENSOR_NAMES)
   axes[0].set_ylabel("missions")
-  axes[0].set_title("Red-team agent: target sensor")
+  axes[0].set_title("Red-team agent: sensors spoofed")
   axes[0].legend(fontsize=7)
   axes[1].set_xlabel("onset (s)")
   axes[1].set_ylabel("duration (s)")

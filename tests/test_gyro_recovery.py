@@ -43,7 +43,7 @@ def setup():
   return cfg, params, tick
 
 
-def _tilted_flight(params, k):
+def _tilted_flight(params, k, mag_bias=0.0):
   """Readings of a vehicle holding TRUE_EUL under hover thrust: it accelerates along R f + g (f: the model's
   specific force of that thrust), GPS velocity at 10 Hz, magnetometer heading TRUE_EUL[2]."""
   q = math3d.euler_to_quat(jnp.asarray(TRUE_EUL, jnp.float32))
@@ -53,7 +53,7 @@ def _tilted_flight(params, k):
   t = k * DT
   f32 = lambda x: jnp.asarray(x, jnp.float32)
   rd = SensorReadings(gps_pos=f32([0.0, 0.0, 20.0]) + 0.5 * a * t * t, gps_vel=a * (t - (k % 5) * DT),
-                      gps_fresh=f32(k % 5 == 0), gyro=f32([0.0, 0.0, 0.0]), accel=f, mag_yaw=f32(TRUE_EUL[2]),
+                      gps_fresh=f32(k % 5 == 0), gyro=f32([0.0, 0.0, 0.0]), accel=f, mag_yaw=f32(TRUE_EUL[2] + mag_bias),
                       mag_fresh=f32(1.0), baro_alt=f32(20.0), baro_fresh=f32(k % 2 == 0), flow=f32([0.0, 0.0]),
                       flow_fresh=f32(0.0), odom_speed=f32(0.0), odom_fresh=f32(0.0))
   return rd, u, a
@@ -67,12 +67,12 @@ def relevel(setup):
   e = ekf_lib.ekf_init(cfg.ekf, rd0).replace(
       quat=math3d.euler_to_quat(jnp.asarray(TRUE_EUL + DRAG_EUL, jnp.float32)))
   out = {}
-  for name in ("gyro", "gps"):
+  for name, mag_bias in (("gyro", 0.0), ("gps", 0.0), ("gyro+spoofed mag", np.pi)):
     st = recon.recon_init(cfg, e)
     for k in range(N_PRE + 1):
-      rd, u, _ = _tilted_flight(params, k)
+      rd, u, _ = _tilted_flight(params, k, mag_bias * (k == N_PRE))   # the magnetometer spoofed on the alarm tick
       alarm = jnp.asarray(k == N_PRE)
-      st, _, _, _ = tick(st, e, rd, u, jnp.where(alarm, _mask(name), 0.0), alarm)
+      st, _, _, _ = tick(st, e, rd, u, jnp.where(alarm, _mask(name.split("+")[0]), 0.0), alarm)
     out[name] = st.shadow
   return cfg, out
 
@@ -87,6 +87,19 @@ def test_newly_blamed_gyro_relevels_the_dragged_attitude(relevel):
   assert p[6] > 0.5 * cfg.relevel_tilt_sigma ** 2 and p[7] > 0.5 * cfg.relevel_tilt_sigma ** 2, p[6:9]
   # blaming another sensor leaves the (checkpoint's) attitude alone
   assert _tilt_err(out["gps"].quat, TRUE_EUL) > 20.0
+
+
+def test_relevel_keeps_the_heading_when_the_magnetometer_is_spoofed_too(relevel):
+  """Gyro and magnetometer spoofed together, the diagnosis naming only the gyro (the red team's attack on DeLorean):
+  a magnetometer 180 deg off the shadow's heading (beyond ReconConfig.relevel_mag_gate) must not set it; the tilt is
+  still re-levelled from the gravity reference. With the spoofed heading the autopilot flies reversed and flips."""
+  cfg, out = relevel
+  sh = out["gyro+spoofed mag"]
+  yaw = float(math3d.quat_to_euler(sh.quat)[2])
+  assert abs(yaw - (TRUE_EUL[2] + DRAG_EUL[2])) < 0.05, yaw                    # the shadow's (dragged) heading
+  assert DRAG_EUL[2] < cfg.relevel_mag_gate < np.pi / 2                         # the honest case above is inside
+  assert _tilt_err(sh.quat, TRUE_EUL) < 3.0, _tilt_err(sh.quat, TRUE_EUL)
+  assert float(np.diag(np.asarray(sh.P))[8]) < 2 * cfg.ekf_cfg().init_yaw_sigma ** 2   # not opened to the spoof
 
 
 def test_model_rate_correction_does_not_saturate_over_a_long_alarm(setup):

@@ -125,3 +125,36 @@ def test_bad_redteam_budget_is_one_line_exit_2(argv, needle, tmp_path, capsys):
   assert evaluate_cli.main(CLI_ARGS + argv + ["--out", str(tmp_path)]) == 2
   err = capsys.readouterr().err
   assert needle in err and err.count("\n") == 1
+
+
+def test_log_counts_sensor_sets_crashes_and_says_the_verdict():
+  """report.redteam_log on constructed records: a two-sensor attack counts for both sensors and as its set, the
+  crash share is logged, and the verdict names the best controller and says when none keeps half its missions."""
+  from specguard_jax import report
+  name = "redteam/gps+gyro/agent"
+  results = {"groups": {"main": {"settings": ["attack_free", name]}}}
+  gyro, mag = SENSOR_NAMES.index("gyro"), SENSOR_NAMES.index("mag")
+
+  def rec(crash):
+    n = len(crash)
+    mask = np.zeros((2 * n, 6), np.float32)
+    mask[n:, gyro] = 1.0
+    mask[n:n + 2, mag] = 1.0                     # two missions spoof gyro + mag, the rest the gyro alone
+    return {"setting": np.repeat([0, 1], n), "redteam_sensor": np.r_[np.full(n, -1), np.full(n, gyro)],
+            "redteam_mask": mask, "onset": np.r_[np.full(n, 1e9), np.full(n, 10.0)],
+            "attack_end": np.r_[np.zeros(n), np.full(n, 10.5)], "mission": np.r_[np.arange(n), np.arange(n)],
+            "world": np.zeros(2 * n, int), "violated": np.zeros((2 * n, 12), bool),
+            "complete": np.r_[np.ones(n, bool), ~np.asarray(crash)], "crash": np.r_[np.zeros(n, bool), crash],
+            "collision": np.zeros(2 * n, bool)}
+  records = {("main", "no_protection"): rec([True, True, True, False]),
+             ("main", "delorean"): rec([True, False, False, False])}
+  log = report.redteam_log(results, records)
+  s = log["no_protection"]["summary"]
+  assert s["sensors"] == {"gyro": 4, "mag": 2} and s["combinations"] == {"gyro+mag": 2, "gyro": 2}
+  assert s["crash"] == 0.75 and s["any_violation"] == 0.75 and s["duration_s"]["median"] == 0.5
+  assert log["delorean"]["summary"]["crash"] == 0.25
+  v = report.redteam_verdict(log)
+  assert "best controller is delorean with 25.0 %" in v and "crashes 25.0-75.0 %" in v and "Kept" in v
+  records[("main", "delorean")] = rec([True, True, False, True])
+  assert "No controller keeps even half" in report.redteam_verdict(report.redteam_log(results, records))
+  assert "| gyro+mag 2, gyro 2 |" in "\n".join(report.redteam_markdown(log))

@@ -125,6 +125,12 @@ class ReconConfig:
   relevel_min_tilt: float = 0.15   # rad: roll/pitch are re-levelled from the gravity reference when the shadow's tilt
                                    # disagrees with it by more than this (else the shadow's are kept)
   relevel_alpha: float = 0.3       # EMA weight per GPS sample of the gravity reference (ReconState gvel..f_lp)
+  relevel_mag_gate: float = 1.05   # rad (60 deg): the heading is taken from a magnetometer the diagnosis clears only
+                                   # when it is within this of the shadow's. A gyro ramp below the detector's threshold
+                                   # drags the heading 10-50 deg before the alarm (an honest magnetometer there); the
+                                   # paper's magnetometer spoofs are 90-180 deg (Table 3), and a gyro + magnetometer
+                                   # attack whose diagnosis names only the gyro otherwise hands the shadow the spoofed
+                                   # heading (the red team's attack on DeLorean: reversed heading, flipped in ~1.4 s)
   sticky_gyro: bool = True         # a gyroscope blamed once stays replaced until the hand-back, even when the diagnosis
                                    # moves on to another sensor (flying on the spoofed rates again flips the vehicle)
   sticky_after_s: float = 0.5      # s; ... once it has been blamed this long without a break (a transient gyro blame
@@ -297,7 +303,9 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   A slow gyro ramp below the detector's threshold (or a first diagnosis that blamed another sensor) leaves 10-50 deg
   of attitude error in the checkpoint and so in the shadow; its aiding cannot pull that back (the 3-sigma
   magnetometer and 5-sigma GPS-velocity gates reject it), so the autopilot held a wrong attitude and the vehicle
-  flipped ~1.5 s later. Here: yaw from the (trusted) magnetometer; roll/pitch from the gravity reference (the
+  flipped ~1.5 s later. Here: yaw from the magnetometer if the diagnosis clears it and it is within
+  relevel_mag_gate of the shadow's heading (else the shadow's heading is kept: a magnetometer spoofed in the same
+  attack, not yet named); roll/pitch from the gravity reference (the
   GPS-derived world acceleration a and the model's specific force f over the last ~0.3 s satisfy R f = a - g: the
   shortest tilt mapping f onto a - g under that yaw) where the shadow's tilt disagrees with it by more than
   relevel_min_tilt; velocity from the (trusted) GPS; the attitude / velocity / model-rate-error covariance blocks
@@ -306,8 +314,9 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   Returns (shadow, rate)."""
   ecfg = cfg.ekf_cfg()
   gps_ok = do & ~mask[SENSOR_NAMES.index("gps")]
-  mag_ok = do & ~mask[SENSOR_NAMES.index("mag")]
   e = math3d.quat_to_euler(shadow.quat)
+  mag_off = jnp.abs(math3d.wrap_angle(readings.mag_yaw - e[2]))   # rad, [0, pi]
+  mag_ok = do & ~mask[SENSOR_NAMES.index("mag")] & (mag_off <= cfg.relevel_mag_gate)
   yaw = jnp.where(mag_ok, readings.mag_yaw, e[2])
   quat = math3d.euler_to_quat(jnp.stack([e[0], e[1], yaw]))
   u, f = state.acc_w - dyn.G, state.f_lp
