@@ -102,6 +102,25 @@ def test_relevel_keeps_the_heading_when_the_magnetometer_is_spoofed_too(relevel)
   assert float(np.diag(np.asarray(sh.P))[8]) < 2 * cfg.ekf_cfg().init_yaw_sigma ** 2   # not opened to the spoof
 
 
+@pytest.mark.parametrize("n_pre", [5, N_PRE])
+def test_relevel_trusts_a_far_magnetometer_only_before_a_trusted_checkpoint(setup, n_pre):
+  """A gyro attack from take-off drags the heading 86 deg (beyond relevel_mag_gate) before an alarm 5 ticks in: the
+  ring then holds no checkpoint `lag` entries old, so the shadow's heading is no reference and the (honest)
+  magnetometer's is taken. With a full ring the same disagreement reads as a spoofed magnetometer: heading kept."""
+  cfg, params, tick = setup
+  drag = np.array([0.0, 0.0, 1.5])
+  rd0, _, _ = _tilted_flight(params, 0)
+  e = ekf_lib.ekf_init(cfg.ekf, rd0).replace(quat=math3d.euler_to_quat(jnp.asarray(TRUE_EUL + drag, jnp.float32)))
+  st = recon.recon_init(cfg, e)
+  for k in range(n_pre + 1):
+    rd, u, _ = _tilted_flight(params, k)
+    alarm = jnp.asarray(k == n_pre)
+    st, _, _, _ = tick(st, e, rd, u, jnp.where(alarm, _mask("gyro"), 0.0), alarm)
+  assert drag[2] > cfg.relevel_mag_gate and (n_pre <= cfg.lag) == (n_pre == 5)
+  yaw = float(math3d.quat_to_euler(st.shadow.quat)[2])
+  assert abs(yaw - (TRUE_EUL[2] if n_pre <= cfg.lag else TRUE_EUL[2] + drag[2])) < 0.05, yaw
+
+
 def test_model_rate_correction_does_not_saturate_over_a_long_alarm(setup):
   """Level hover, gyro blamed for 8 s, one rotor's thrust 0.2 N above the others: the model predicts a steady roll
   acceleration the vehicle does not have (its true rates are zero, the aiding says level), so the shadow keeps
