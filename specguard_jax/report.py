@@ -161,7 +161,8 @@ def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
     viol = M.violation(r)
     rows = [{"mission": int(r["mission"][k]), "world": int(r["world"][k]),
              "sensor": SENSOR_NAMES[int(sens[k])] if hit[k] else None,
-             "sensors": [n for j, n in enumerate(SENSOR_NAMES) if "redteam_mask" in r and r["redteam_mask"][k, j] > 0],
+             "sensors": ([n for j, n in enumerate(SENSOR_NAMES) if r["redteam_mask"][k, j] > 0] if "redteam_mask" in r
+                         else [SENSOR_NAMES[int(sens[k])]] if hit[k] else []),   # records without the mask: the first
              "onset_s": float(onset[k]) if hit[k] else None, "duration_s": float(dur[k]) if hit[k] else None,
              "violated": bool(viol[k]), "complete": bool(r["complete"][k]), "crash": bool(r["crash"][k]),
              "collision": bool(r["collision"][k])} for k in range(len(sens))]
@@ -659,7 +660,7 @@ def redteam_verdict(log: dict) -> str:
   if crashes:
     line += f"; crashes {100 * min(crashes):.1f}-{100 * max(crashes):.1f} %"
   held = [c for c, r in rates.items() if r < 0.5]
-  return line + (". No controller keeps even half of its missions compliant." if not held else
+  return line + (". No controller keeps more than half of its missions compliant." if not held else
                  f". Kept most missions compliant: {', '.join(held)}.")
 
 

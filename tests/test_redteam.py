@@ -156,5 +156,8 @@ def test_log_counts_sensor_sets_crashes_and_says_the_verdict():
   v = report.redteam_verdict(log)
   assert "best controller is delorean with 25.0 %" in v and "crashes 25.0-75.0 %" in v and "Kept" in v
   records[("main", "delorean")] = rec([True, True, False, True])
-  assert "No controller keeps even half" in report.redteam_verdict(report.redteam_log(results, records))
+  assert "No controller keeps more than half" in report.redteam_verdict(report.redteam_log(results, records))
   assert "| gyro+mag 2, gyro 2 |" in "\n".join(report.redteam_markdown(log))
+  # records written before the mask was recorded: the agent's first sensor only
+  old = {k: {f: v for f, v in r.items() if f != "redteam_mask"} for k, r in records.items()}
+  assert report.redteam_log(results, old)["delorean"]["summary"]["sensors"] == {"gyro": 4}

@@ -305,20 +305,22 @@ def _relevel(cfg: ReconConfig, state: ReconState, shadow, rate, readings, mask, 
   magnetometer and 5-sigma GPS-velocity gates reject it), so the autopilot held a wrong attitude and the vehicle
   flipped ~1.5 s later. Here: yaw from the magnetometer if the diagnosis clears it and it is within
   relevel_mag_gate of the shadow's heading (else the shadow's heading is kept: a magnetometer spoofed in the same
-  attack, not yet named), or from it anyway while the ring holds no checkpoint `lag` entries old; roll/pitch from the gravity reference (the
-  GPS-derived world acceleration a and the model's specific force f over the last ~0.3 s satisfy R f = a - g: the
-  shortest tilt mapping f onto a - g under that yaw) where the shadow's tilt disagrees with it by more than
-  relevel_min_tilt; velocity from the (trusted) GPS; the attitude / velocity / model-rate-error covariance blocks
-  reset so the aiding is accepted again; the model rate restarts at zero where the diagnosis switched to the gyro
-  during the alarm (`switch`: it was the spoofed gyro's; a rising alarm's comes from the checkpoint's model roll).
+  attack, not yet named), or from it anyway while the ring holds no checkpoint `lag` entries old; roll/pitch from the
+  gravity reference (the GPS-derived world acceleration a and the model's specific force f over the last ~0.3 s
+  satisfy R f = a - g: the shortest tilt mapping f onto a - g under that yaw) where the shadow's tilt disagrees with
+  it by more than relevel_min_tilt; velocity from the (trusted) GPS; the attitude / velocity / model-rate-error
+  covariance blocks reset so the aiding is accepted again; the model rate restarts at zero where the diagnosis
+  switched to the gyro during the alarm (`switch`: it was the spoofed gyro's; a rising alarm's comes from the
+  checkpoint's model roll).
   Returns (shadow, rate)."""
   ecfg = cfg.ekf_cfg()
   gps_ok = do & ~mask[SENSOR_NAMES.index("gps")]
   e = math3d.quat_to_euler(shadow.quat)
   mag_off = jnp.abs(math3d.wrap_angle(readings.mag_yaw - e[2]))   # rad, [0, pi]
   # The shadow's heading is a trusted reference only once the ring holds a checkpoint `lag` entries old: an alarm in
-  # a mission's first lag ticks replays from an entry the attack may already have dragged (onset at take-off).
-  ckpt_trusted = state.ckpt.count > min(cfg.lag, cfg.window - 1)
+  # a mission's first lag ticks replays from an entry the attack may already have dragged (onset at take-off). An
+  # attack from take-off detected later than that still drags the checkpoint; the gate then keeps the dragged heading.
+  ckpt_trusted = state.ckpt.count > cfg.lag_ticks
   mag_ok = do & ~mask[SENSOR_NAMES.index("mag")] & ((mag_off <= cfg.relevel_mag_gate) | ~ckpt_trusted)
   yaw = jnp.where(mag_ok, readings.mag_yaw, e[2])
   quat = math3d.euler_to_quat(jnp.stack([e[0], e[1], yaw]))
