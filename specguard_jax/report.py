@@ -4,6 +4,7 @@ records (records/<group>__<controller>.npz)."""
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -170,16 +171,13 @@ def redteam_log(results: dict, records: dict, group: str = "main") -> dict:
     def stats(x):
       x = x[np.isfinite(x)]
       return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max())} if len(x) else None
-    counts = {n: sum(n in m["sensors"] for m in rows) for n in SENSOR_NAMES}
-    combos = {}
-    for m in rows:
-      if m["sensors"]:
-        combos["+".join(m["sensors"])] = combos.get("+".join(m["sensors"]), 0) + 1
+    counts = collections.Counter(name for m in rows for name in m["sensors"])
+    combos = collections.Counter("+".join(m["sensors"]) for m in rows if m["sensors"])
     n = len(rows)
     out[cname] = {"setting": names[0], "agent": (results.get("redteam") or {}).get(cname), "missions": rows,
                   "summary": {"missions": n, "attacked": float(np.mean(hit)) if n else 0.0,
-                              "sensors": {k: v for k, v in counts.items() if v},
-                              "combinations": dict(sorted(combos.items(), key=lambda kv: -kv[1])),
+                              "sensors": {k: counts[k] for k in SENSOR_NAMES if counts[k]},
+                              "combinations": dict(combos.most_common()),
                               "onset_s": stats(onset), "duration_s": stats(dur),
                               "any_violation": float(np.mean(viol)) if n else 0.0,
                               "crash": float(np.mean(np.asarray(r["crash"]) > 0)) if n else 0.0}}
@@ -642,10 +640,9 @@ def redteam_markdown(log) -> list:
     s, a = v["summary"], v.get("agent") or {}
     how = ("trained here" if a.get("trained") else "loaded") + (f" ({a['train_s']:.0f} s)" if a.get("train_s") else "")
     med = lambda x: f"{x['median']:.1f}" if x else "n/a"  # noqa: E731
-    sens = ", ".join(f"{k} {n}" for k, n in s.get("combinations", s["sensors"]).items()) or "none"
-    crash = f"{100 * s['crash']:.1f}" if "crash" in s else "n/a"
+    sens = ", ".join(f"{k} {n}" for k, n in s["combinations"].items()) or "none"
     L.append(f"| {c} | {how} | {s['missions']} | {100 * s['attacked']:.0f} | {sens} | {med(s['onset_s'])} | "
-             f"{med(s['duration_s'])} | {100 * s['any_violation']:.1f} | {crash} |")
+             f"{med(s['duration_s'])} | {100 * s['any_violation']:.1f} | {100 * s['crash']:.1f} |")
   return L + ["", redteam_verdict(log), ""]
 
 
@@ -654,11 +651,10 @@ def redteam_verdict(log: dict) -> str:
   missions free of violations (the red team is a best response: what it finds is what a controller leaves open)."""
   rates = {c: v["summary"]["any_violation"] for c, v in log.items()}
   best = min(rates, key=rates.get)
-  crashes = [v["summary"].get("crash") for v in log.values() if v["summary"].get("crash") is not None]
+  crashes = [v["summary"]["crash"] for v in log.values()]
   line = (f"Verdict: against its own red team the best controller is {best} with {100 * rates[best]:.1f} % of "
-          f"missions violating (worst: {100 * max(rates.values()):.1f} %)")
-  if crashes:
-    line += f"; crashes {100 * min(crashes):.1f}-{100 * max(crashes):.1f} %"
+          f"missions violating (worst: {100 * max(rates.values()):.1f} %); crashes "
+          f"{100 * min(crashes):.1f}-{100 * max(crashes):.1f} %")
   held = [c for c, r in rates.items() if r < 0.5]
   return line + (". No controller keeps more than half of its missions compliant." if not held else
                  f". Kept most missions compliant: {', '.join(held)}.")
